@@ -1,0 +1,20 @@
+# georeg: register airborne imagery to a geo-referenced map without GPS.
+# Table of contents only; each stage lives in workflow/rules/<stage>.smk.
+import os
+
+from snakemake.utils import min_version
+
+min_version("9.0")
+
+
+configfile: os.path.join(workflow.basedir, "config", "config.yaml")
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/demo.smk"
+
+
+rule all:
+    input:
+        all_inputs,
+    default_target: True
