@@ -1,0 +1,303 @@
+"""Verification of one candidate: 2-NN ratio matching (stop at Nt), time-bounded RANSAC homography.
+
+Query side in query pixels (col, row at the original query resolution); map side in map x, y.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+# knn(query_desc) -> (dist (n,2) L2 (not squared), idx (n,2) positions in the candidate's arrays)
+KnnFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+FLAT_MAX = 60_000  # exact faiss search up to this many map descriptors, FLANN kd-tree beyond
+
+
+def knn2(map_desc: np.ndarray, threads: int = 1) -> KnnFn:
+    """A 2-NN searcher over ``map_desc``: exact (faiss flat) when small, FLANN kd-tree when large."""
+    md = np.ascontiguousarray(map_desc, dtype=np.float32)
+    n = len(md)
+    if n == 0:
+        return lambda q: (np.full((len(q), 2), np.inf, np.float32), np.full((len(q), 2), -1))
+    if n <= FLAT_MAX:
+        import faiss
+
+        faiss.omp_set_num_threads(max(1, int(threads)))
+        index = faiss.IndexFlatL2(md.shape[1])
+        index.add(md)
+
+        def search(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            d2, ii = index.search(np.ascontiguousarray(q, dtype=np.float32), min(2, n))
+            d = np.sqrt(np.maximum(d2, 0.0))
+            if n == 1:  # a single map feature: no second neighbour, the ratio test cannot pass
+                d = np.c_[d, np.full(len(d), np.inf, np.float32)]
+                ii = np.c_[ii, np.full(len(ii), -1)]
+            return d, ii
+
+        return search
+    flann = cv2.flann_Index(md, {"algorithm": 1, "trees": 4})  # FLANN_INDEX_KDTREE
+
+    def search_flann(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ii, d2 = flann.knnSearch(
+            np.ascontiguousarray(q, dtype=np.float32), 2, params={"checks": 128}
+        )
+        return np.sqrt(np.maximum(d2, 0.0)), ii.astype(np.int64)
+
+    return search_flann
+
+
+@dataclass
+class Matches:
+    """Ratio-test correspondences, one per map keypoint, strongest query features first."""
+
+    q_idx: np.ndarray  # index into the query features
+    m_idx: np.ndarray  # index into the candidate's map arrays
+    q_xy: np.ndarray  # (n,2) query col,row (original query pixels)
+    m_xy: np.ndarray  # (n,2) map x,y
+    dist: np.ndarray  # descriptor distance of the best neighbour
+    n_examined: int = 0  # query features looked at before stopping
+
+    def __len__(self) -> int:
+        return len(self.q_idx)
+
+
+def ratio_matches(
+    q_xy: np.ndarray,
+    q_desc: np.ndarray,
+    q_response: np.ndarray | None,
+    m_xy: np.ndarray,
+    knn: KnnFn,
+    ratio: float = 0.7,
+    max_matches: int | None = 100,
+    chunk: int = 1024,
+) -> Matches:
+    """The paper's linear search: query features in order of response, 2-NN ratio test, stop at Nt.
+
+    If several query features match one map keypoint only the closest is kept. ``max_matches``
+    None or 0 uses every query feature.
+    """
+    n = len(q_desc)
+    order = np.argsort(-q_response, kind="stable") if q_response is not None else np.arange(n)
+    limit = int(max_matches) if max_matches else None
+    qi_all: list[np.ndarray] = []
+    mi_all: list[np.ndarray] = []
+    d_all: list[np.ndarray] = []
+    best: dict[int, float] = {}
+    examined = 0
+    for start in range(0, n, chunk):
+        sel = order[start : start + chunk]
+        d, ii = knn(q_desc[sel])
+        examined = start + len(sel)
+        ok = (ii[:, 0] >= 0) & (d[:, 0] < ratio * d[:, 1])
+        qi_all.append(sel[ok])
+        mi_all.append(ii[ok, 0])
+        d_all.append(d[ok, 0])
+        best.update(dict.fromkeys(ii[ok, 0].tolist(), 0.0))
+        if limit is not None and len(best) >= limit:
+            break
+    qi = np.concatenate(qi_all) if qi_all else np.zeros(0, np.int64)
+    mi = np.concatenate(mi_all).astype(np.int64) if mi_all else np.zeros(0, np.int64)
+    dd = np.concatenate(d_all) if d_all else np.zeros(0, np.float32)
+    # one match per map keypoint: the smallest descriptor distance wins
+    keep = _closest_per_key(mi, dd)
+    # back to the search order (strongest query features first), then cut at Nt
+    rank = np.empty(n, np.int64)
+    rank[order] = np.arange(n)
+    keep = keep[np.argsort(rank[qi[keep]], kind="stable")]
+    if limit is not None:
+        if len(keep) > limit:
+            # examined counts the query features up to (and including) the Nt-th kept match
+            examined = int(rank[qi[keep[limit - 1]]]) + 1
+        keep = keep[:limit]
+    qi, mi, dd = qi[keep], mi[keep], dd[keep]
+    return Matches(qi, mi, q_xy[qi].astype(np.float64), m_xy[mi].astype(np.float64), dd, examined)
+
+
+def _closest_per_key(keys: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Positions of the smallest ``dist`` for every distinct key."""
+    if len(keys) == 0:
+        return np.zeros(0, np.int64)
+    o = np.lexsort((dist, keys))
+    first = np.r_[True, keys[o][1:] != keys[o][:-1]]
+    return o[first]
+
+
+@dataclass
+class HomographyFit:
+    """A homography query (col,row) -> map (x,y) with its inliers and residuals in map pixels."""
+
+    H: np.ndarray | None
+    inliers: np.ndarray  # bool (n,)
+    residual_px: np.ndarray  # (n,) reprojection distance in map feature pixels
+    threshold_px: float
+    rounds: int = 0
+    seconds: float = 0.0
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def n_inliers(self) -> int:
+        return int(self.inliers.sum())
+
+    @property
+    def rms_px(self) -> float:
+        """RMS residual of the inliers (map feature pixels)."""
+        r = self.residual_px[self.inliers]
+        return float(np.sqrt(np.mean(r**2))) if len(r) else float("nan")
+
+
+def apply_h(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Apply a 3x3 homography to (n,2) points (float64)."""
+    xy = np.asarray(xy, np.float64)
+    p = xy @ H[:, :2].T + H[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return p[:, :2] / p[:, 2:3]
+
+
+_METHODS = {
+    "magsac": "usac",
+    "usac_magsac": "usac",
+    "usac_accurate": "usac",
+    "usac_default": "usac",
+    "ransac": "ransac",
+    "rho": "rho",
+}
+
+
+def _usac_params(method: str, thr: float, conf: float, iters: int, seed: int) -> cv2.UsacParams:
+    p = cv2.UsacParams()
+    p.threshold = float(thr)
+    p.confidence = float(conf)
+    p.maxIterations = int(iters)
+    p.randomGeneratorState = int(seed) & 0x7FFFFFFF
+    p.isParallel = False
+    if method in ("magsac", "usac_magsac"):
+        p.sampler = cv2.SAMPLING_UNIFORM
+        p.score = cv2.SCORE_METHOD_MAGSAC
+        p.loMethod = cv2.LOCAL_OPTIM_SIGMA
+        p.loIterations = 10
+        p.loSampleSize = 14
+        p.final_polisher = cv2.MAGSAC
+        p.final_polisher_iterations = 10
+    else:  # USAC_ACCURATE-like: MSAC score, graph-cut local optimisation
+        p.sampler = cv2.SAMPLING_UNIFORM
+        p.score = cv2.SCORE_METHOD_MSAC
+        p.loMethod = cv2.LOCAL_OPTIM_GC
+        p.loIterations = 10
+        p.loSampleSize = 14
+        p.final_polisher = cv2.LSQ_POLISHER
+        p.final_polisher_iterations = 3
+    return p
+
+
+def fit_homography(
+    q_xy: np.ndarray,
+    m_xy: np.ndarray,
+    map_px_m: float,
+    conf: dict[str, Any],
+    seed: int = 0,
+) -> HomographyFit:
+    """Time-bounded robust homography, then least squares on all inliers.
+
+    ``conf`` keys: method (magsac | usac_accurate | ransac | rho), reproj_px (inlier threshold in
+    map feature pixels), max_seconds (time bound over rounds), max_iters (per round), confidence,
+    rounds (most rounds; stops early when two rounds agree), affine_below (with fewer inliers the
+    least-squares re-estimation fits an affine map: 8 degrees of freedom from a handful of
+    clustered points extrapolate badly over the footprint). Map coordinates are centred and scaled
+    to map feature pixels for the solver, so thresholds are in pixels and numerics stay sane.
+    """
+    n = len(q_xy)
+    thr = float(conf.get("reproj_px", 3.0))
+    empty = HomographyFit(None, np.zeros(n, bool), np.full(n, np.inf), thr)
+    if n < 4:
+        return empty
+    t0 = time.perf_counter()
+    c = m_xy.mean(axis=0)
+    s = float(map_px_m)
+    # map y is flipped (north-up -> row-down) so that a proper nadir mapping preserves orientation:
+    # USAC rejects orientation-reversing minimal samples, and (col,row) -> (x,y) is one otherwise
+    T = np.array([[1 / s, 0, -c[0] / s], [0, -1 / s, c[1] / s], [0, 0, 1.0]])
+    src = np.ascontiguousarray(q_xy, np.float32)
+    dst = np.ascontiguousarray(apply_h(T, m_xy), np.float32)
+    method = str(conf.get("method", "magsac")).lower()
+    kind = _METHODS.get(method)
+    if kind is None:
+        raise ValueError(f"unknown RANSAC method {method!r}; expected one of {sorted(_METHODS)}")
+    max_s = float(conf.get("max_seconds", 2.0))
+    iters = int(conf.get("max_iters", 10000))
+    confidence = float(conf.get("confidence", 0.999))
+    max_rounds = int(conf.get("rounds", 3))
+    best_H, best_count, last_count, rounds = None, -1, -2, 0
+    while rounds < max_rounds and (rounds == 0 or time.perf_counter() - t0 < max_s):
+        rs = seed * 7919 + rounds
+        try:
+            if kind == "usac":
+                Hn, mask = cv2.findHomography(
+                    src, dst, _usac_params(method, thr, confidence, iters, rs)
+                )
+            else:
+                cv2.setRNGSeed(rs)
+                flag = cv2.RANSAC if kind == "ransac" else cv2.RHO
+                Hn, mask = cv2.findHomography(
+                    src, dst, flag, thr, maxIters=iters, confidence=confidence
+                )
+        except cv2.error:
+            Hn, mask = None, None
+        rounds += 1
+        if Hn is None or mask is None or Hn.shape != (3, 3):
+            continue
+        cnt = int(mask.sum())
+        if cnt > best_count:
+            best_H, best_count = Hn, cnt
+        if cnt == last_count:  # two rounds found the same support: converged
+            break
+        last_count = cnt
+    if best_H is None:
+        empty.rounds, empty.seconds = rounds, time.perf_counter() - t0
+        return empty
+    Hn = best_H
+    inl = _residuals(Hn, src, dst) < thr
+    affine_below = int(conf.get("affine_below", 12))
+    model = "homography"
+    for _ in range(3):  # least squares on all inliers, re-evaluate the support
+        if inl.sum() < 4:
+            break
+        if inl.sum() < affine_below:
+            # too few inliers to pin 8 degrees of freedom: perspective terms would extrapolate wildly
+            Hls, cand, keep = _affine_lsq(src[inl], dst[inl]), "affine", 0.8
+        else:
+            Hls, _m = cv2.findHomography(src[inl], dst[inl], 0)
+            cand, keep = "homography", 1.0
+        if Hls is None:
+            break
+        new = _residuals(Hls, src, dst) < thr
+        if new.sum() < keep * inl.sum() or new.sum() < 4:
+            break
+        Hn, model, stable = Hls, cand, bool(np.array_equal(new, inl))
+        inl = new
+        if stable:
+            break
+    res = _residuals(Hn, src, dst)
+    H = np.linalg.inv(T) @ Hn
+    H = H / H[2, 2]
+    return HomographyFit(
+        H, res < thr, res, thr, rounds, time.perf_counter() - t0, {"method": method, "model": model}
+    )
+
+
+def _affine_lsq(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Least-squares affine map src -> dst as a 3x3 matrix."""
+    A = np.c_[src.astype(np.float64), np.ones(len(src))]
+    sol, *_ = np.linalg.lstsq(A, dst.astype(np.float64), rcond=None)
+    return np.vstack([sol.T, [0.0, 0.0, 1.0]])
+
+
+def _residuals(Hn: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    p = apply_h(Hn, src)
+    r = np.linalg.norm(p - dst, axis=1)
+    return np.where(np.isfinite(r), r, np.inf)

@@ -1,0 +1,23 @@
+"""Rule fuse_parts: fuse the parts into one registration; write geolocation.tif."""
+
+from georeg.fuse import run_fuse_parts
+from georeg.scripting import run
+
+
+def main(smk):
+    run_fuse_parts(
+        smk.input.band,
+        smk.input.meta,
+        list(smk.input.parts),
+        smk.input.index,
+        smk.input.grid,
+        smk.input.dsm,
+        smk.input.truth[0] if smk.input.truth else None,
+        dict(smk.params.register),
+        int(smk.params.seed),
+        smk.output.registration,
+        smk.output.geolocation,
+    )
+
+
+run(snakemake, main)  # noqa: F821

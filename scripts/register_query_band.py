@@ -1,0 +1,19 @@
+"""Rule query_band: select, mask and stretch the query band (band.tif + band.json)."""
+
+from georeg.band import write_query_band
+from georeg.scripting import run
+
+
+def main(smk):
+    q = smk.params.query
+    write_query_band(
+        q["image"],
+        q.get("band", "1200nm"),
+        q.get("gsd_m"),
+        smk.output.band,
+        smk.output.meta,
+        tuple(smk.params.percentiles),
+    )
+
+
+run(snakemake, main)  # noqa: F821

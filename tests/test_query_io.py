@@ -1,0 +1,181 @@
+"""Reading query cubes (ENVI, GeoTIFF with wavelengths, plain images) and choosing the band."""
+
+from __future__ import annotations
+
+import gzip
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+
+from georeg.band import parse_band_spec, select_band, stretch_uint8, write_query_band
+from georeg.errors import InputError
+from georeg.query_io import open_query, parse_envi_header
+
+CODES = {"u1": 1, "i2": 2, "i4": 3, "f4": 4, "f8": 5, "u2": 12, "u4": 13, "i8": 14, "u8": 15}
+
+
+def write_envi(
+    base: Path,
+    cube: np.ndarray,  # (bands, lines, samples)
+    interleave: str = "bsq",
+    big_endian: bool = False,
+    ext: str = ".bil",
+    offset: int = 0,
+    extra: str = "",
+    hdr_ext: str = ".hdr",
+) -> Path:
+    """Write ``cube`` as an ENVI file pair and return the header path."""
+    b, lines, samples = cube.shape
+    arr = {"bsq": cube, "bil": cube.transpose(1, 0, 2), "bip": cube.transpose(1, 2, 0)}[interleave]
+    dt = cube.dtype.newbyteorder(">" if big_endian else "<")
+    data = Path(f"{base}{ext}")
+    data.write_bytes(b"\0" * offset + np.ascontiguousarray(arr).astype(dt).tobytes())
+    hdr = Path(f"{base}{hdr_ext}")
+    hdr.write_text(
+        "ENVI\ndescription = {test cube,\n  written by a test}\n"
+        f"samples = {samples}\nlines   = {lines}\nbands = {b}\nheader offset = {offset}\n"
+        f"file type = ENVI Standard\ndata type = {CODES[cube.dtype.str[1:]]}\n"
+        f"interleave = {interleave}\nbyte order = {int(big_endian)}\n{extra}"
+    )
+    return hdr
+
+
+def cube_of(dtype: str, bands: int = 5, lines: int = 7, samples: int = 11) -> np.ndarray:
+    rng = np.random.default_rng(3)
+    a = rng.integers(0, 120, size=(bands, lines, samples))
+    return a.astype(dtype)
+
+
+@pytest.mark.parametrize("interleave", ["bsq", "bil", "bip"])
+@pytest.mark.parametrize("big_endian", [False, True])
+@pytest.mark.parametrize("dtype", ["u1", "i2", "i4", "f4", "f8", "u2", "u4", "i8", "u8"])
+def test_envi_round_trip(tmp_path, interleave, big_endian, dtype):
+    cube = cube_of(dtype)
+    hdr = write_envi(
+        tmp_path / "q", cube, interleave, big_endian, offset=16 if dtype == "i2" else 0
+    )
+    c = open_query(hdr)
+    assert (c.width, c.height, c.count) == (11, 7, 5)
+    for i in range(5):
+        np.testing.assert_array_equal(c.read_band(i), cube[i].astype(np.float32))
+
+
+@pytest.mark.parametrize("ext", ["", ".bsq", ".img", ".dat", ".BIL"])
+def test_data_file_extensions_and_upper_case_header(tmp_path, ext):
+    cube = cube_of("f4")
+    hdr = write_envi(tmp_path / "scene", cube, "bil", ext=ext, hdr_ext=".HDR")
+    c = open_query(hdr)
+    np.testing.assert_array_equal(c.read_band(3), cube[3])
+    # giving the data file instead of the header works too (when it has an extension)
+    if ext:
+        assert open_query(Path(f"{tmp_path / 'scene'}{ext}")).count == 5
+
+
+@pytest.mark.parametrize(
+    "units,values,expect",
+    [
+        ("Nanometers", "900, 1200, 1500, 2000, 2500", [900, 1200, 1500, 2000, 2500]),
+        ("Micrometers", "0.9, 1.2, 1.5, 2.0, 2.5", [900, 1200, 1500, 2000, 2500]),
+        ("um", "0.9, 1.2, 1.5, 2.0, 2.5", [900, 1200, 1500, 2000, 2500]),
+        ("micrometers", "0.9, 1.2, 1.5, 2.0, 2.5", [900, 1200, 1500, 2000, 2500]),
+        ("Unknown", "0.9, 1.2, 1.5, 2.0, 2.5", [900, 1200, 1500, 2000, 2500]),
+    ],
+)
+def test_wavelength_units(tmp_path, units, values, expect):
+    extra = f"wavelength units = {units}\nwavelength = {{\n {values}}}\nfwhm = {{{values}}}\n"
+    c = open_query(write_envi(tmp_path / "w", cube_of("u2"), "bsq", extra=extra))
+    np.testing.assert_allclose(c.wavelengths_nm, expect)
+    _, _, info = select_band(c, "1.25um")
+    assert info["index"] == 1 and info["wavelength_nm"] == pytest.approx(1200)
+
+
+def test_band_selection_and_nodata(tmp_path):
+    cube = cube_of("f4")
+    cube[2, 0, :3] = -9999
+    extra = (
+        "wavelength units = nm\nwavelength = {900,1000,1100,1200,1300}\ndata ignore value = -9999\n"
+    )
+    c = open_query(write_envi(tmp_path / "n", cube, "bip", extra=extra))
+    band, mask, info = select_band(c, "1100nm")
+    assert info["index"] == 2 and not mask[0, :3].any() and mask.sum() == mask.size - 3
+    band, mask, info = select_band(c, 4)
+    np.testing.assert_array_equal(band, cube[4])
+    mean, mmask, _ = select_band(c, "mean")
+    expect = cube.mean(axis=0)
+    expect[0, :3] = cube[[0, 1, 3, 4], 0, :3].mean(axis=0)  # nodata excluded per pixel
+    np.testing.assert_allclose(mean, expect, rtol=1e-5)
+    u8, st = stretch_uint8(band, mask)
+    assert u8.dtype == np.uint8 and u8[mask].min() >= 1 and (u8[~mask] == 0).all()
+
+
+def test_errors_are_clear(tmp_path):
+    extra = "wavelength units = Micrometers\nwavelength = {0.9, 1.2, 1.5, 2.0, 2.5}\n"
+    hdr = write_envi(tmp_path / "e", cube_of("i2"), "bil", extra=extra)
+    c = open_query(hdr)
+    with pytest.raises(InputError, match=r"outside the cube.*900\.0-2500\.0 nm in 5 bands"):
+        select_band(c, "650nm")
+    with pytest.raises(InputError, match=r"band index 9 does not exist.*0\.\.4"):
+        select_band(c, 9)
+    with pytest.raises(InputError, match="not understood"):
+        parse_band_spec("red")
+    # truncated data file
+    data = Path(f"{tmp_path / 'e'}.bil")
+    data.write_bytes(data.read_bytes()[:-10])
+    with pytest.raises(InputError, match=r"e\.bil: data file is \d+ bytes but the header"):
+        open_query(hdr)
+    # compressed cube: refused with the fix in the message
+    hdr2 = write_envi(tmp_path / "z", cube_of("u1"), "bsq", extra="file compression = 1\n")
+    raw = Path(f"{tmp_path / 'z'}.bil")
+    raw.write_bytes(gzip.compress(raw.read_bytes()))
+    with pytest.raises(InputError, match="gzip"):
+        open_query(hdr2)
+    with pytest.raises(InputError, match="does not exist"):
+        open_query(tmp_path / "missing.hdr")
+    # no wavelengths and several bands: a wavelength cannot be chosen
+    hdr3 = write_envi(tmp_path / "nw", cube_of("u1"), "bsq")
+    with pytest.raises(InputError, match="no wavelengths.*index 0..4 or 'mean'"):
+        select_band(open_query(hdr3), "1200nm")
+
+
+def test_header_parser_multiline(tmp_path):
+    p = tmp_path / "h.hdr"
+    p.write_text("ENVI\nsamples = 3\nband names = {\n a,\n b}\nmap info = {UTM, 1, 1}\nlines=2\n")
+    h = parse_envi_header(p)
+    assert h["samples"] == "3" and h["lines"] == "2" and h["band names"].replace("\n", "") == "a, b"
+
+
+def test_geotiff_with_wavelength_descriptions(tmp_path):
+    p = tmp_path / "m.tif"
+    data = np.arange(3 * 4 * 5, dtype=np.float32).reshape(3, 4, 5)
+    with rasterio.open(p, "w", driver="GTiff", width=5, height=4, count=3, dtype="float32") as d:
+        d.write(data)
+        for i, w in enumerate(("418.24 nm", "1650.5 nm", "2.2 um"), start=1):
+            d.set_band_description(i, w)
+    c = open_query(p)
+    np.testing.assert_allclose(c.wavelengths_nm, [418.24, 1650.5, 2200.0])
+    band, _, info = select_band(c, "1600nm")
+    assert info["index"] == 1
+    np.testing.assert_array_equal(band, data[1])
+
+
+def test_single_band_png_and_write_query_band(tmp_path):
+    import cv2
+
+    img = (np.random.default_rng(0).random((40, 30)) * 200 + 20).astype(np.uint8)
+    p = tmp_path / "g.png"
+    cv2.imwrite(str(p), img)
+    c = open_query(p)
+    assert c.count == 1 and c.wavelengths_nm is None
+    meta = write_query_band(str(p), "1200nm", None, tmp_path / "b.tif", tmp_path / "b.json")
+    assert meta["band"]["index"] == 0 and meta["valid_fraction"] == 1.0
+    with rasterio.open(tmp_path / "b.tif") as d:
+        assert d.read(1).shape == (40, 30) and d.nodata == 0
+
+
+def test_enmap_geotiff(shared_data):
+    c = open_query(shared_data / "enmap_potsdam" / "enmap_potsdam_mosaic_subset.tif")
+    assert c.count == 224 and c.wavelengths_nm.min() == pytest.approx(418.24)
+    band, mask, info = select_band(c, "1.65um")
+    assert abs(info["wavelength_nm"] - 1650) < 10 and 0.1 < mask.mean() < 0.9

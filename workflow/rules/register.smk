@@ -1,0 +1,99 @@
+# Query registration (issue 5): query band -> one search job per along-track part -> fused
+# registration + per-pixel geolocation. Params hold only what each rule uses, so changing the
+# matching settings (`register:`) reruns the searches and the fusion, never the band extraction.
+from pathlib import Path
+
+REG_PARTS = list(range(int(config["register"]["parts"])))
+REG_SEED = config["seed"] if config["register"].get("seed") is None else config["register"]["seed"]
+REG_INDEX_META = "results/index/map/meta.json"
+REG_GRID = "results/map/grid.json"
+REG_DSM = "results/map/mosaic/dsm.vrt"
+
+
+def reg_query(wildcards):
+    return config["queries"][wildcards.name]
+
+
+def reg_image_files(wildcards):
+    """The query image, plus the ENVI data file next to a header (so a changed cube reruns)."""
+    from georeg.query_io import find_envi_data
+
+    image = Path(reg_query(wildcards)["image"])
+    files = [str(image)]
+    if image.suffix.lower() == ".hdr" and image.exists():
+        files.append(str(find_envi_data(image)))
+    return files
+
+
+def reg_truth(wildcards):
+    truth = reg_query(wildcards).get("truth")
+    return [truth] if truth else []
+
+
+rule query_band:
+    input:
+        reg_image_files,
+    output:
+        band="results/queries/{name}/band.tif",
+        meta="results/queries/{name}/band.json",
+    params:
+        query=reg_query,
+        percentiles=config["register"]["stretch_percentiles"],
+    log:
+        "logs/register/query_band/{name}.log",
+    threads: 1
+    resources:
+        mem_mb=2000,
+    script:
+        "../../scripts/register_query_band.py"
+
+
+rule search_part:
+    input:
+        band="results/queries/{name}/band.tif",
+        meta="results/queries/{name}/band.json",
+        index=REG_INDEX_META,
+        grid=REG_GRID,
+    output:
+        "results/queries/{name}/parts/part_{part}.json",
+    params:
+        register=config["register"],
+        seed=REG_SEED,
+    wildcard_constraints:
+        part=r"\d+",
+    log:
+        "logs/register/search_part/{name}_{part}.log",
+    threads: 1
+    resources:
+        mem_mb=3000,
+    script:
+        "../../scripts/register_search_part.py"
+
+
+rule fuse_parts:
+    input:
+        band="results/queries/{name}/band.tif",
+        meta="results/queries/{name}/band.json",
+        parts=expand("results/queries/{{name}}/parts/part_{part}.json", part=REG_PARTS),
+        index=REG_INDEX_META,
+        grid=REG_GRID,
+        dsm=REG_DSM,
+        truth=reg_truth,
+    output:
+        registration="results/queries/{name}/registration.json",
+        geolocation="results/queries/{name}/geolocation.tif",
+    params:
+        register=config["register"],
+        seed=REG_SEED,
+    log:
+        "logs/register/fuse_parts/{name}.log",
+    threads: 1
+    resources:
+        mem_mb=3000,
+    script:
+        "../../scripts/register_fuse_parts.py"
+
+
+# geolocation.tif is always written (all NaN when the query is not found)
+TARGETS.append(expand("results/queries/{name}/registration.json", name=QUERIES))
+TARGETS.append(expand("results/queries/{name}/geolocation.tif", name=QUERIES))
