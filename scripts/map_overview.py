@@ -1,0 +1,11 @@
+"""Rule map_overview: quicklook PNG (orthophoto + tile grid, hillshaded DSM)."""
+
+from georeg.overview import make_overview
+from georeg.scripting import run
+
+
+def main(smk):
+    make_overview(smk.input.grid, smk.input.ortho, smk.input.dsm, smk.output[0])
+
+
+run(snakemake, main)  # noqa: F821

@@ -1,0 +1,11 @@
+"""Rule map_tile_ortho: one orthophoto tile as a COG, mosaicked from the overlapping sources."""
+
+from georeg.mapgrid import make_ortho_tile
+from georeg.scripting import run
+
+
+def main(smk):
+    make_ortho_tile(smk.input.grid, smk.wildcards.tile, smk.output[0], smk.params.resampling)
+
+
+run(snakemake, main)  # noqa: F821

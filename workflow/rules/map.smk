@@ -1,0 +1,152 @@
+# Map preparation (issue 3): orthophotos + LiDAR (or a DEM) -> a tiled, aligned, elevation-aware map.
+# `map_grid` is a checkpoint: the tile list is known only once the orthophotos have been read.
+# Each rule gets only the params it uses, so a changed LiDAR setting reruns the elevation tiles,
+# their mosaics and the overview, never the orthophoto tiles (see docs/ARCHITECTURE.md "map").
+import json
+
+MAP_ELEV_LAYERS = ["dsm", "dtm", "ndsm", "density"]
+MAP_MOSAIC_LAYERS = ["ortho"] + MAP_ELEV_LAYERS
+
+
+def map_tile_ids():
+    """Tile ids of the map grid (after the map_grid checkpoint has run)."""
+    with open(checkpoints.map_grid.get().output[0]) as f:
+        return sorted(json.load(f)["tiles"])
+
+
+def map_elevation_source():
+    """'lidar' when map.lidar lists files, else 'dem' when map.dem is set, else 'none'."""
+    if lidar_paths():
+        return "lidar"
+    return "dem" if config["map"].get("dem") else "none"
+
+
+def map_elevation_params():
+    """Only the map_prep keys that change the elevation result of the active source."""
+    mp = config["map_prep"]
+    if map_elevation_source() == "lidar":
+        keys = ["point_margin_m", "drop_classes", "outlier", "dsm_fill_max_m", "dtm_fill", "dtm_window_m"]
+        out = {k: mp[k] for k in keys}
+        out["lidar_crs"] = config["map"].get("lidar_crs")
+        return out
+    return {"dem_resampling": mp["dem_resampling"]}
+
+
+def map_elevation_inputs(wildcards):
+    src = map_elevation_source()
+    if src == "lidar":
+        return lidar_paths()
+    return [config["map"]["dem"]] if src == "dem" else []
+
+
+def map_layer_tiles(wildcards):
+    return expand("results/map/tiles/{tile}/{layer}.tif", tile=map_tile_ids(), layer=wildcards.layer)
+
+
+def map_targets(wildcards):
+    """Final outputs of the map stage: per-tile rasters and points, mosaics, overview."""
+    tiles = map_tile_ids()
+    out = expand(
+        "results/map/tiles/{tile}/{name}",
+        tile=tiles,
+        name=["ortho.tif"] + [f"{l}.tif" for l in MAP_ELEV_LAYERS] + ["points.laz"],
+    )
+    out += expand("results/map/mosaic/{layer}.vrt", layer=MAP_MOSAIC_LAYERS)
+    out.append("results/map/overview.png")
+    return out
+
+
+checkpoint map_grid:
+    input:
+        ortho=orthophoto_paths(),
+    output:
+        "results/map/grid.json",
+    params:
+        tile_size_px=config["map_prep"]["tile_size_px"],
+        tile_overlap_px=config["map_prep"]["tile_overlap_px"],
+        crs=config["map"].get("crs"),
+    log:
+        "logs/map/map_grid.log",
+    threads: 1
+    resources:
+        mem_mb=1000,
+    script:
+        "../../scripts/map_grid.py"
+
+
+rule map_tile_ortho:
+    input:
+        grid="results/map/grid.json",
+        ortho=orthophoto_paths(),
+    output:
+        "results/map/tiles/{tile}/ortho.tif",
+    params:
+        resampling=config["map_prep"]["ortho_resampling"],
+    wildcard_constraints:
+        tile=r"r\d+_c\d+",
+    log:
+        "logs/map/map_tile_ortho/{tile}.log",
+    threads: 1
+    resources:
+        mem_mb=1000,
+    script:
+        "../../scripts/map_tile_ortho.py"
+
+
+rule map_tile_elevation:
+    input:
+        ortho="results/map/tiles/{tile}/ortho.tif",
+        source=map_elevation_inputs,
+    output:
+        dsm="results/map/tiles/{tile}/dsm.tif",
+        dtm="results/map/tiles/{tile}/dtm.tif",
+        ndsm="results/map/tiles/{tile}/ndsm.tif",
+        density="results/map/tiles/{tile}/density.tif",
+        points="results/map/tiles/{tile}/points.laz",
+    params:
+        source=map_elevation_source(),
+        settings=map_elevation_params(),
+        # memory only, deliberately not a rerun trigger: read from config in the script
+    wildcard_constraints:
+        tile=r"r\d+_c\d+",
+    log:
+        "logs/map/map_tile_elevation/{tile}.log",
+    threads: 1
+    resources:
+        mem_mb=3000,
+    script:
+        "../../scripts/map_tile_elevation.py"
+
+
+rule map_mosaic:
+    input:
+        grid="results/map/grid.json",
+        tiles=map_layer_tiles,
+    output:
+        "results/map/mosaic/{layer}.vrt",
+    wildcard_constraints:
+        layer="|".join(MAP_MOSAIC_LAYERS),
+    log:
+        "logs/map/map_mosaic/{layer}.log",
+    threads: 1
+    script:
+        "../../scripts/map_mosaic.py"
+
+
+rule map_overview:
+    input:
+        grid="results/map/grid.json",
+        ortho="results/map/mosaic/ortho.vrt",
+        dsm="results/map/mosaic/dsm.vrt",
+    output:
+        report("results/map/overview.png", category="map"),
+    log:
+        "logs/map/map_overview.log",
+    threads: 1
+    resources:
+        mem_mb=1500,
+    script:
+        "../../scripts/map_overview.py"
+
+
+TARGETS.append(map_targets)
