@@ -13,6 +13,9 @@ configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 include: "workflow/rules/common.smk"
 include: "workflow/rules/demo.smk"
 include: "workflow/rules/map.smk"
+include: "workflow/rules/index.smk"
+include: "workflow/rules/register.smk"
+include: "workflow/rules/products.smk"
 
 
 rule all:

@@ -131,6 +131,22 @@ def plausibility(
     return out
 
 
+def inlier_spread(q_xy: np.ndarray, width: int, height: int) -> dict[str, float]:
+    """How well inliers (query pixels) pin a 2-D transform: spread along their minor axis.
+
+    Collinear inliers (a row of cars or houses matched to another row) leave a homography or an
+    affine map free across the line, so any NFA computed from their residuals is meaningless.
+    Returns the minor/major standard deviation ratio and the minor standard deviation as a
+    fraction of the part's smaller side.
+    """
+    q = np.asarray(q_xy, np.float64).reshape(-1, 2)
+    if len(q) < 3:
+        return {"minor_major": 0.0, "minor_frac": 0.0}
+    ev = np.linalg.eigvalsh(np.cov((q - q.mean(axis=0)).T))
+    minor, major = math.sqrt(max(ev[0], 0.0)), math.sqrt(max(ev[1], 1e-12))
+    return {"minor_major": minor / major, "minor_frac": minor / max(min(width, height), 1)}
+
+
 def decide(
     H: np.ndarray | None,
     residual_px: np.ndarray,
@@ -142,6 +158,7 @@ def decide(
     conf: dict[str, Any],
     n_candidates: int = 1,
     origin: tuple[float, float] = (0.0, 0.0),
+    inlier_q_xy: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Accept or reject one candidate; returns the decision and every number it used.
 
@@ -174,5 +191,15 @@ def decide(
     if not lnfa < float(conf.get("log_nfa_max", 0.0)):
         reasons.append(f"log10 NFA {lnfa:.1f} >= {conf.get('log_nfa_max', 0.0)}")
     reasons += plaus.get("reasons", [])
+    if inlier_q_xy is not None:
+        spread = inlier_spread(inlier_q_xy, width, height)
+        out["spread"] = spread
+        lo_ratio = float(conf.get("min_spread_ratio", 0.2))
+        lo_frac = float(conf.get("min_spread_frac", 0.05))
+        if spread["minor_major"] < lo_ratio or spread["minor_frac"] < lo_frac:
+            reasons.append(
+                f"inliers nearly collinear (minor/major spread {spread['minor_major']:.2f} < "
+                f"{lo_ratio} or minor spread {spread['minor_frac']:.1%} of the part < {lo_frac:.0%})"
+            )
     out.update(accepted=not reasons, reason="; ".join(reasons))
     return out

@@ -210,6 +210,7 @@ def verify(
         conf.get("acceptance", {}),
         n_candidates=n_candidates,
         origin=qf.origin,
+        inlier_q_xy=None if fit.H is None else m.q_xy[fit.inliers],
     )
     rec.update(
         inliers=fit.n_inliers,
@@ -217,6 +218,7 @@ def verify(
         log10_nfa=dec.get("log10_nfa"),
         reason=dec.get("reason", ""),
         plausibility={k: v for k, v in (dec.get("plausibility") or {}).items() if k != "ok"},
+        spread=dec.get("spread"),
         ransac_rounds=fit.rounds,
         ransac_s=round(fit.seconds, 4),
         residual_px=fit.rms_px,

@@ -29,7 +29,8 @@ def all_inputs(wildcards):
     """Everything `rule all` asks for: the union of what each stage registered."""
     out = []
     for t in TARGETS:
-        out.extend(t(wildcards) if callable(t) else [t])
+        t = t(wildcards) if callable(t) else t
+        out.extend([t] if isinstance(t, str) else t)
     return out
 
 

@@ -1,0 +1,14 @@
+"""Rule products: elevation, fused product, segmentation, footprint, spectral point cloud."""
+
+from georeg.products import make_products
+from georeg.scripting import run
+
+
+def main(smk):
+    mosaics = {k: smk.input[k] for k in ("dsm", "dtm", "ndsm")}
+    make_products(smk.input.registration, smk.input.geolocation, smk.input.image[0], smk.input.cube,
+                  mosaics, list(smk.input.points), smk.output[0], dict(smk.params.products),
+                  smk.input.grid, smk.wildcards.name, smk.input.labels[0] if smk.input.labels else None)  # fmt: skip
+
+
+run(snakemake, main)  # noqa: F821
