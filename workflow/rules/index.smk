@@ -1,0 +1,86 @@
+# Feature index (issue 4): SIFT features per map tile -> k-means visual words -> the map index.
+# Params hold only the `features:` / `vocabulary:` sections, so changing the matching settings
+# (`register:`) reruns nothing here, while changing detector settings re-extracts every tile.
+import json
+
+INDEX_DIR = "results/index/map"
+# keep in sync with georeg.index.INDEX_ARRAYS (tests/test_index.py checks it)
+INDEX_ARRAYS = [
+    "xy", "z", "ndsm", "scale", "angle", "response", "desc", "tile", "word",
+    "tile_offsets", "tile_bounds", "centroids", "ivf_offsets", "ivf_ids", "df", "idf",
+    "wt_offsets", "wt_tile", "wt_count", "tile_norm",
+]
+
+
+def index_tile_ids():
+    """Tile ids of the map grid (after the map_grid checkpoint has run)."""
+    with open(checkpoints.map_grid.get().output[0]) as f:
+        return sorted(json.load(f)["tiles"])
+
+
+def index_feature_dirs(wildcards):
+    return expand("results/index/features/{tile}", tile=index_tile_ids())
+
+
+def index_vocabulary_seed():
+    seed = config["vocabulary"].get("seed")
+    return config["seed"] if seed is None else seed
+
+
+rule tile_features:
+    input:
+        grid="results/map/grid.json",
+        ortho="results/map/tiles/{tile}/ortho.tif",
+        dsm="results/map/tiles/{tile}/dsm.tif",
+        ndsm="results/map/tiles/{tile}/ndsm.tif",
+    output:
+        directory("results/index/features/{tile}"),
+    params:
+        features=config["features"],
+    wildcard_constraints:
+        tile=r"r\d+_c\d+",
+    log:
+        "logs/index/tile_features/{tile}.log",
+    threads: 1
+    resources:
+        mem_mb=2000,
+    script:
+        "../../scripts/index_tile_features.py"
+
+
+rule vocabulary:
+    input:
+        features=index_feature_dirs,
+    output:
+        centroids="results/index/vocabulary/centroids.npy",
+        meta="results/index/vocabulary/meta.json",
+    params:
+        vocabulary=config["vocabulary"],
+        seed=index_vocabulary_seed(),
+    log:
+        "logs/index/vocabulary.log",
+    threads: workflow.cores
+    resources:
+        mem_mb=4000,
+    script:
+        "../../scripts/index_vocabulary.py"
+
+
+rule build_index:
+    input:
+        grid="results/map/grid.json",
+        centroids="results/index/vocabulary/centroids.npy",
+        features=index_feature_dirs,
+    output:
+        meta=f"{INDEX_DIR}/meta.json",
+        arrays=expand(f"{INDEX_DIR}/{{name}}.npy", name=INDEX_ARRAYS),
+    log:
+        "logs/index/build_index.log",
+    threads: 1
+    resources:
+        mem_mb=4000,
+    script:
+        "../../scripts/index_build.py"
+
+
+TARGETS.append(f"{INDEX_DIR}/meta.json")
