@@ -10,12 +10,16 @@ min_version("9.0")
 configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 
 
+report: "workflow/report/workflow.rst"
+
+
 include: "workflow/rules/common.smk"
 include: "workflow/rules/demo.smk"
 include: "workflow/rules/map.smk"
 include: "workflow/rules/index.smk"
 include: "workflow/rules/register.smk"
 include: "workflow/rules/products.smk"
+include: "workflow/rules/report.smk"
 
 
 rule all:

@@ -1,6 +1,7 @@
 """Shared helpers: config loading (user map/queries replace the demo's), validation, targets."""
 
 import copy
+import re
 from pathlib import Path
 
 from snakemake.utils import validate
@@ -22,6 +23,10 @@ _replace_user_sections(config)
 validate(config, schema="../schemas/config.schema.yaml")
 
 QUERIES = sorted(config["queries"])
+
+
+wildcard_constraints:
+    name="|".join(re.escape(q) for q in QUERIES) or "(?!)",
 TARGETS = []  # each stage file appends its final outputs (paths or input functions)
 
 

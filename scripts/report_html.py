@@ -1,0 +1,22 @@
+"""Rule report_html: the self-contained results/report/index.html and summary.csv."""
+
+from georeg.report import run_report
+from georeg.scripting import run
+
+
+def main(smk):
+    run_report(
+        list(smk.params.queries),
+        list(smk.input.registration),
+        list(smk.input.evaluation),
+        list(smk.input.figures),
+        dict(smk.params.config),
+        smk.output.html,
+        smk.output.summary,
+        log_roots=list(smk.params.logs),
+        benchmark_csv=smk.input.benchmark[0] if smk.input.benchmark else None,
+        overview_png=smk.input.overview,
+    )
+
+
+run(snakemake, main)  # noqa: F821

@@ -1,0 +1,138 @@
+"""The workflow end to end on the tiny demo (config/test.yaml), and its configuration contract."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+from rasterio.transform import from_origin
+
+from georeg.geolocation import evaluate
+
+REPO = Path(__file__).resolve().parents[1]
+TEST_CONFIG = REPO / "config" / "test.yaml"
+
+
+def snakemake(workdir: Path, *args: str, timeout: int = 1500) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "-d", str(workdir)]
+    return subprocess.run(
+        cmd + list(args), capture_output=True, text=True, timeout=timeout, cwd=workdir
+    )
+
+
+@pytest.fixture(scope="module")
+def demo_run(tmp_path_factory) -> Path:
+    """`snakemake --cores 2` (rule all) on the tiny demo, once for the module."""
+    work = tmp_path_factory.mktemp("demo_run")
+    proc = snakemake(work, "--cores", "2", "--configfile", str(TEST_CONFIG))
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    return work
+
+
+@pytest.mark.slow
+def test_demo_query_registered_to_a_pixel(demo_run):
+    reg = json.loads((demo_run / "results/queries/demo/registration.json").read_text())
+    assert reg["status"] == "registered"
+    assert len(reg["parts"]) == 2  # the two halves ran as their own jobs
+    assert all((demo_run / f"results/queries/demo/parts/part_{i}.json").exists() for i in (0, 1))
+    # independent check against the dense truth, through the written geolocation raster
+    with rasterio.open(demo_run / "results/queries/demo/geolocation.tif") as src:
+        geo = src.read()
+    with rasterio.open(demo_run / "results/demo/queries/demo_truth.tif") as src:
+        truth = src.read()
+    err = np.hypot(geo[0] - truth[0], geo[1] - truth[1])
+    assert np.median(err) < 1.0  # map pixels are 1 m
+    assert np.isfinite(geo[2]).mean() > 0.99  # every pixel got an elevation
+    stats = evaluate(np.array(reg["homography"]), demo_run / "results/demo/queries/demo_truth.tif", 1.0)
+    assert stats["m"]["median"] == pytest.approx(np.median(err), rel=1e-3)
+    assert reg["evaluation"]["m"]["median"] == pytest.approx(stats["m"]["median"], rel=1e-6)
+
+
+@pytest.mark.slow
+def test_outside_query_not_found(demo_run):
+    reg = json.loads((demo_run / "results/queries/outside/registration.json").read_text())
+    assert reg["status"] == "not_found"
+    assert reg["reason"]
+    manifest = json.loads((demo_run / "results/products/outside/products.json").read_text())
+    assert manifest["status"] == "not_found"
+
+
+@pytest.mark.slow
+def test_products_and_overview_written(demo_run):
+    manifest = json.loads((demo_run / "results/products/demo/products.json").read_text())
+    assert manifest["status"] == "registered"
+    assert (demo_run / "results/map/overview.png").stat().st_size > 10_000
+    with rasterio.open(demo_run / "results/map/mosaic/dsm.vrt") as src:
+        assert src.crs.to_epsg() == 32611
+
+
+@pytest.mark.slow
+def test_second_run_has_nothing_to_do(demo_run):
+    proc = snakemake(demo_run, "-n", "--cores", "2", "--configfile", str(TEST_CONFIG))
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "Nothing to be done" in proc.stdout + proc.stderr
+
+
+@pytest.mark.slow
+def test_changed_matching_parameter_reruns_registration_only(demo_run, tmp_path):
+    extra = tmp_path / "ratio.yaml"
+    extra.write_text("register:\n  ratio: 0.75\n")
+    proc = snakemake(
+        demo_run, "-n", "--cores", "2", "--configfile", str(TEST_CONFIG), str(extra)
+    )
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-2000:]
+    assert "search_part" in out
+    for rule in ("demo_scene", "map_tile_ortho", "tile_features", "vocabulary", "build_index"):
+        assert f"rule {rule}:" not in out and f"\n{rule} " not in out, rule
+
+
+def _write_ortho(path: Path, crs: str | None = "EPSG:32633") -> None:
+    rng = np.random.default_rng(0)
+    data = rng.integers(0, 255, (3, 64, 64), dtype=np.uint8)
+    with rasterio.open(
+        path, "w", driver="GTiff", width=64, height=64, count=3, dtype="uint8",
+        crs=crs, transform=from_origin(360000, 5800000, 1.0, 1.0),
+    ) as dst:  # fmt: skip
+        dst.write(data)
+
+
+def test_user_config_replaces_demo_map_and_queries(tmp_path):
+    """A user's map/queries replace the demo's wholesale: no demo LiDAR, no demo queries."""
+    _write_ortho(tmp_path / "my ortho.tif")
+    (tmp_path / "my.yaml").write_text(
+        "map:\n  orthophoto: my ortho.tif\n"
+        "queries:\n  mine:\n    image: mine.tif\n"
+        "register:\n  ratio: 0.8\n"
+    )
+    my = str(tmp_path / "my.yaml")
+    proc = snakemake(tmp_path, "-n", "--cores", "1", "--configfile", my)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out[-2000:]
+    assert "demo_scene" not in out and "results/demo" not in out  # no demo LiDAR, no demo scene
+    # the user's query is planned from the user's image...
+    proc = snakemake(tmp_path, "results/queries/mine/band.tif", "-n", "--configfile", my)
+    assert "mine.tif" in proc.stdout + proc.stderr  # planned (its image is missing here)
+    # ...and the demo's queries are gone, not merged in
+    for name in ("demo", "outside"):
+        proc = snakemake(tmp_path, f"results/queries/{name}/band.tif", "-n", "--configfile", my)
+        assert proc.returncode != 0, name
+
+
+def test_schema_rejects_unknown_key_naming_it(tmp_path):
+    (tmp_path / "bad.yaml").write_text("register:\n  ratoi: 0.8\n")
+    proc = snakemake(tmp_path, "-n", "--cores", "1", "--configfile", str(tmp_path / "bad.yaml"))
+    assert proc.returncode != 0
+    assert "ratoi" in proc.stdout + proc.stderr
+
+
+def test_schema_rejects_wrong_type_naming_it(tmp_path):
+    (tmp_path / "bad.yaml").write_text("map_prep:\n  tile_size_px: big\n")
+    proc = snakemake(tmp_path, "-n", "--cores", "1", "--configfile", str(tmp_path / "bad.yaml"))
+    assert proc.returncode != 0
+    assert "tile_size_px" in proc.stdout + proc.stderr or "'big'" in proc.stdout + proc.stderr

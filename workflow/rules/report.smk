@@ -1,0 +1,137 @@
+# Evaluation and the report (issue 7): per-query evaluation.json against the truth, per-query
+# figures, the self-contained results/report/index.html, and Snakemake's own report
+# (`snakemake --report report.html`, captions in workflow/report/). Params hold only the
+# `report:` keys each rule uses: changing them never reruns a registration.
+from pathlib import Path
+
+REP = config["report"]
+REP_GRID = "results/map/grid.json"
+REP_PARTS = list(range(int(config["register"]["parts"])))
+REP_BENCH = "results/benchmark/summary.csv"
+
+
+def rep_query(wildcards):
+    return config["queries"][wildcards.name]
+
+
+def rep_optional(key):
+    """Input function: the query's `truth` / `labels` file as a one-item list, or nothing."""
+
+    def f(wildcards):
+        v = rep_query(wildcards).get(key)
+        return [v] if v else []
+
+    return f
+
+
+def rep_products_defined():
+    """True when a rule (the products stage) writes results/products/{name}/products.json."""
+    for r in workflow.rules:
+        if any(str(o).endswith("products/{name}/products.json") for o in r.output):
+            return True
+    return False
+
+
+def rep_products(wildcards):
+    """The products manifest (segmentation), when `report.segmentation` and the stage exists."""
+    if not REP["segmentation"] or not rep_products_defined():
+        return []
+    return [f"results/products/{wildcards.name}/products.json"]
+
+
+rule evaluate_query:
+    input:
+        registration="results/queries/{name}/registration.json",
+        geolocation="results/queries/{name}/geolocation.tif",
+        grid=REP_GRID,
+        truth=rep_optional("truth"),
+        labels=rep_optional("labels"),
+        products=rep_products,
+    output:
+        "results/queries/{name}/evaluation.json",
+    params:
+        bound={k: REP[k] for k in ("success_error_px", "success_stat", "min_inside_fraction")},
+    log:
+        "logs/report/evaluate_query/{name}.log",
+    threads: 1
+    resources:
+        mem_mb=1500,
+    script:
+        "../../scripts/evaluate_query.py"
+
+
+rule report_figures:
+    input:
+        registration="results/queries/{name}/registration.json",
+        evaluation="results/queries/{name}/evaluation.json",
+        geolocation="results/queries/{name}/geolocation.tif",
+        band="results/queries/{name}/band.tif",
+        parts=expand("results/queries/{{name}}/parts/part_{part}.json", part=REP_PARTS),
+        grid=REP_GRID,
+        ortho="results/map/mosaic/ortho.vrt",
+        ndsm="results/map/mosaic/ndsm.vrt",
+        truth=rep_optional("truth"),
+        labels=rep_optional("labels"),
+        products=rep_products,
+    output:
+        report(
+            directory("results/report/figures/{name}"),
+            patterns=["{figure}.png"],
+            caption="../report/query_figures.rst",
+            category="queries",
+            subcategory="{name}",
+            labels={"query": "{name}", "figure": "{figure}"},
+        ),
+    params:
+        figures={
+            k: REP[k] for k in ("figure_dpi", "checker_squares", "max_inlier_lines")
+        },
+    log:
+        "logs/report/report_figures/{name}.log",
+    threads: 1
+    resources:
+        mem_mb=2000,
+    script:
+        "../../scripts/report_figures.py"
+
+
+def rep_benchmark(wildcards):
+    """results/benchmark/summary.csv when `python benchmarks/run.py` wrote it (then a newer one
+    rebuilds the page); the benchmark is not a rule: it measures the library, minutes long."""
+    return [REP_BENCH] if Path(REP_BENCH).exists() else []
+
+
+rule report_html:
+    input:
+        registration=expand("results/queries/{name}/registration.json", name=QUERIES),
+        evaluation=expand("results/queries/{name}/evaluation.json", name=QUERIES),
+        figures=expand("results/report/figures/{name}", name=QUERIES),
+        overview="results/map/overview.png",
+        benchmark=rep_benchmark,
+    output:
+        html=report(
+            "results/report/index.html",
+            caption="../report/index_html.rst",
+            category="report",
+            labels={"file": "index.html"},
+        ),
+        summary=report(
+            "results/report/summary.csv",
+            caption="../report/summary.rst",
+            category="report",
+            labels={"file": "summary.csv"},
+        ),
+    params:
+        queries=QUERIES,
+        config=config,
+        logs=["logs", "benchmarks"],
+    log:
+        "logs/report/report_html.log",
+    threads: 1
+    resources:
+        mem_mb=1500,
+    script:
+        "../../scripts/report_html.py"
+
+
+TARGETS.append("results/report/index.html")
