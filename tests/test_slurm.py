@@ -47,7 +47,7 @@ TILE_RULES = {"map_tile_ortho", "map_tile_elevation", "tile_features"}
 PARTITION = "debug"
 ACCOUNT = "ci"
 START_TIMEOUT_S = 600  # a cold start apt-installs slurm + mariadb
-RUN_TIMEOUT_S = 240  # each snakemake run, enforced with `timeout -k 10`
+RUN_TIMEOUT_S = 900  # each snakemake run, enforced with `timeout -k 10` (about 3 min when idle)
 SACCT_WAIT_S = 60  # slurmctld sends job records to slurmdbd asynchronously
 # Outputs that legitimately differ between two runs: glob patterns under results/ (none known).
 # Every other file must be bit-identical, except JSON files, compared without their timing keys.
