@@ -170,6 +170,8 @@ def write_query_band(
     t0 = time.perf_counter()
     cube = open_query(image)
     band, mask, info = select_band(cube, band_spec)
+    if not mask.any():  # before writing anything: a failed step leaves no output
+        raise InputError(image, f"band {band_spec} has no valid pixel", "check 'data ignore value'")
     u8, stretch = stretch_uint8(band, mask, *percentiles)
     profile = {
         "driver": "GTiff",
@@ -196,8 +198,6 @@ def write_query_band(
         "valid_fraction": float(mask.mean()),
         "seconds": time.perf_counter() - t0,
     }
-    if not mask.any():
-        raise InputError(image, f"band {band_spec} has no valid pixel", "check 'data ignore value'")
     write_json(out_json, meta)
     return meta
 

@@ -478,6 +478,38 @@ def benchmark_table(rows: list[dict[str, str]]) -> str:
     )
 
 
+#: packages whose versions can change a result (issue 13: the report states them)
+VERSIONED = (
+    "python", "georeg", "numpy", "scipy", "opencv-python-headless", "faiss-cpu", "rasterio",
+    "GDAL", "pyproj", "PROJ", "laspy", "lazrs", "open3d", "scikit-learn", "snakemake",
+)  # fmt: skip
+
+
+def library_versions() -> dict[str, str]:
+    """Version of each package in VERSIONED ('-' when absent); GDAL/PROJ as linked by rasterio."""
+    import platform
+    from importlib import metadata
+
+    out: dict[str, str] = {}
+    for name in VERSIONED:
+        if name == "python":
+            out[name] = platform.python_version()
+        elif name == "GDAL":
+            import rasterio
+
+            out[name] = rasterio.__gdal_version__
+        elif name == "PROJ":
+            import pyproj
+
+            out[name] = pyproj.proj_version_str
+        else:
+            try:
+                out[name] = metadata.version(name)
+            except metadata.PackageNotFoundError:
+                out[name] = "-"
+    return out
+
+
 def config_yaml(config: Mapping[str, Any]) -> str:
     """The configuration as YAML text."""
     import yaml
@@ -550,6 +582,8 @@ def build_report(
         '<h2 id="config">configuration used</h2>',
         f"<details open><summary>config (YAML, defaults filled in)</summary>"
         f"<pre>{html.escape(config_yaml(config))}</pre></details>",
+        '<h2 id="versions">software versions</h2>',
+        _table(["package", "version"], [[_td(k), _td(v)] for k, v in library_versions().items()]),
         "</main>",
     ]
     page = (
