@@ -823,6 +823,59 @@ def fig_error(q: QueryData, out: Path, dpi: int) -> str | None:
     )
 
 
+def fig_refine(q: QueryData, out: Path, dpi: int, max_arrows: int = 2500) -> str | None:
+    """Local refinement: tie points and their residual vectors, before and after (issue 12)."""
+    r = q.reg.get("refine") or {}
+    pts = r.get("points")
+    if not q.registered or not pts:
+        return None
+    plt = _plt()
+    col, row = np.asarray(pts["col"], float), np.asarray(pts["row"], float)
+    panels = [
+        ("against the global homography", np.asarray(pts["before"], float),
+         np.asarray(pts["accepted"], bool), r.get("residual_before_px") or {}),
+        (f"against the refined model ({r.get('model')})", np.asarray(pts["after"], float),
+         np.asarray(pts["accepted_after"], bool), r.get("residual_after_px") or {}),
+    ]  # fmt: skip
+    ok_all = panels[0][2]
+    mags = np.hypot(*panels[0][1][ok_all].T) if ok_all.any() else np.ones(1)
+    scale = max(float(np.percentile(mags, 90)), 0.25)  # arrow length: p90 residual = 1 grid step
+    step = float(np.median(np.diff(np.unique(col)))) if np.unique(col).size > 1 else 10.0
+    k = step / scale
+    sub = np.arange(col.size)
+    if col.size > max_arrows:
+        sub = np.random.default_rng(0).choice(col.size, max_arrows, replace=False)
+    fig, axes = plt.subplots(1, 2, figsize=(14, 8.5))
+    for ax, (title, v, ok, st) in zip(axes, panels, strict=True):
+        _show_band(ax, q.band, "")
+        s_ok, s_bad = sub[ok[sub]], sub[~ok[sub]]
+        ax.plot(col[s_bad], row[s_bad], "x", color="#d62728", ms=3, label="rejected")
+        ax.quiver(col[s_ok], row[s_ok], k * v[s_ok, 0], k * v[s_ok, 1], angles="xy",
+                  scale_units="xy", scale=1, color="#ffcc00", width=0.003,
+                  label=f"residual x {k:.0f}")  # fmt: skip
+        med, p90 = st.get("median"), st.get("p90")
+        stat = f"median {med:.2f} px, p90 {p90:.2f} px" if med is not None else "no tie point"
+        ax.set_title(f"{title}\n{int(ok.sum())} tie points, {stat}")
+        ax.set_xlabel("query column (px)")
+    axes[0].set_ylabel("query row (px)")
+    axes[0].legend(loc="lower right", fontsize=9)
+    ev = r.get("evaluation") or {}
+    b, a = ev.get("before_px") or {}, ev.get("after_px") or {}
+    truth = ""
+    if b.get("median") is not None and a.get("median") is not None:
+        truth = (f"; true error median {b['median']:.2f} -> {a['median']:.2f}, "
+                 f"p90 {b['p90']:.2f} -> {a['p90']:.2f} map px")  # fmt: skip
+    fig.suptitle(f"{q.name}: local refinement, model {r.get('model')}{truth}")
+    fig.tight_layout()
+    _save(fig, out, dpi)
+    return (
+        "Tie points of the local refinement over the query band: the shift (query px, arrows "
+        "exaggerated as marked) between each query window and the orthophoto rendered through "
+        "the global homography (left) and through the refined geometry (right); red crosses are "
+        "tie points rejected by score or by neighbour consistency."
+    )
+
+
 def fig_not_found(q: QueryData, out: Path, dpi: int) -> str:
     """A clear 'not found: reason' panel."""
     plt = _plt()
@@ -868,6 +921,7 @@ FIGURE_TITLES = {
     "ndsm": "nDSM draped on the footprint",
     "segmentation": "segmentation",
     "error": "error heat-map",
+    "refine": "local refinement tie points",
 }
 
 
@@ -942,6 +996,7 @@ def make_query_figures(
             ),
             ("footprints", fig_footprints),
             ("error", fig_error),
+            ("refine", fig_refine),
             ("search", fig_search),
             (
                 "inliers",

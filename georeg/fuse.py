@@ -180,7 +180,7 @@ def run_fuse_parts(
     from georeg.atomic import write_json
     from georeg.band import feature_scales, read_query_band
     from georeg.geolocation import evaluate, write_geolocation
-    from georeg.search import load_source, query_features
+    from georeg.search import gsd_in_map_units, load_source, query_features
 
     t0 = time.perf_counter()
     meta = json.loads(Path(band_json).read_text())
@@ -188,7 +188,7 @@ def run_fuse_parts(
     source = load_source(index_path, grid_path)
     u8 = read_query_band(band_tif)
     h, w = u8.shape
-    gsd = meta.get("gsd_m")
+    gsd = gsd_in_map_units(meta.get("gsd_m"), source.crs_wkt)
     timings: dict[str, Any] = {
         "query_band": meta.get("seconds"),
         "search_parts": {str(p["part"]): p.get("seconds") for p in parts},

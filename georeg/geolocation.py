@@ -75,14 +75,18 @@ def write_geolocation(
     height: int,
     dsm: str | Path | None,
     crs_wkt: str | None,
+    xy: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict[str, Any]:
-    """Write the 3-band float64 (x, y, z) raster in query geometry; all NaN when H is None."""
+    """Write the 3-band float64 (x, y, z) raster in query geometry; all NaN when H is None.
+
+    ``xy``: per-pixel map x, y (e.g. the local refinement's) instead of H's.
+    """
     import rasterio
 
-    if H is None:
+    if H is None and xy is None:
         x = y = z = np.full((height, width), np.nan)
     else:
-        x, y = map_xy(H, width, height)
+        x, y = xy if xy is not None else map_xy(H, width, height)
         z = sample_raster(dsm, x, y) if dsm and Path(dsm).exists() else np.full(x.shape, np.nan)
     profile = {
         "driver": "GTiff",

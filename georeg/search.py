@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from georeg import acceptance, matching
+from georeg import acceptance, crossspectral, matching
 from georeg.features import dequantize, detect_and_describe, resample
 
 log = logging.getLogger(__name__)
@@ -35,6 +35,8 @@ class MapSource:
     gsd_m: float
     crs_wkt: str | None = None
     index: Any = None  # georeg.index.MapIndex when loaded from disk
+    angle: np.ndarray | None = None  # (n,) keypoint orientation (degrees), plain arrays only
+    scale: np.ndarray | None = None  # (n,) keypoint diameter in map units, plain arrays only
 
     @classmethod
     def from_index(cls, path: str | Path) -> MapSource:
@@ -69,6 +71,17 @@ class MapSource:
         inside = (xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1)
         return np.flatnonzero(inside)
 
+    def geometry(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """(angle degrees, keypoint diameter in map units) of feature ids, or None if unknown."""
+        if self.index is None or not hasattr(self.index, "angle"):
+            if self.angle is None or self.scale is None:
+                return None
+            return np.asarray(self.angle[ids], np.float64), np.asarray(self.scale[ids], np.float64)
+        return (
+            np.asarray(self.index.angle[ids], np.float64),
+            np.asarray(self.index.scale[ids], np.float64),
+        )
+
     def take(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(xy float64, desc float32) of feature ids."""
         return np.asarray(self.xy[ids], np.float64), dequantize(np.asarray(self.desc[ids]))
@@ -88,6 +101,8 @@ class QueryFeatures:
     height: int
     origin: tuple[int, int]  # (col0, row0) of this part in the full query
     factors: list[float]
+    angle: np.ndarray | None = None  # (n,) keypoint orientation, degrees (OpenCV, row-down)
+    size: np.ndarray | None = None  # (n,) keypoint diameter in feature pixels (at the map's GSD)
 
     def __len__(self) -> int:
         return len(self.xy)
@@ -113,7 +128,7 @@ def query_features(
     r0, r1 = rows
     img = np.ascontiguousarray(band_u8[r0:r1])
     mask = img > 0
-    xs, ds, rs = [], [], []
+    xs, ds, rs, angs, sizes = [], [], [], [], []
     for f in factors:
         im, m, (sx, sy) = resample(img, float(f), mask)
         feats = detect_and_describe(im, m, features_conf or {})
@@ -124,6 +139,8 @@ def query_features(
         xs.append(xy)
         ds.append(feats.desc)
         rs.append(feats.response)
+        angs.append(feats.angle.astype(np.float64))
+        sizes.append(feats.scale.astype(np.float64))
     if not xs:
         z = np.zeros(0)
         return QueryFeatures(
@@ -143,6 +160,8 @@ def query_features(
         r1 - r0,
         (0, r0),
         list(factors),
+        np.concatenate(angs),
+        np.concatenate(sizes),
     )
 
 
@@ -181,37 +200,52 @@ def verify(
     mxy, mdesc = source.take(ids)
     knn = matching.knn2(mdesc)
     nt = conf.get("max_matches", 100) if max_matches is None else max_matches
-    m = matching.ratio_matches(
-        qf.xy, qf.desc, qf.response, mxy, knn, float(conf.get("ratio", 0.7)), nt
-    )
-    if guide is not None:
-        d = np.linalg.norm(matching.apply_h(guide[0], m.q_xy) - m.m_xy, axis=1)
-        keep = np.flatnonzero(d <= guide[1])
-        rec["guided_dropped"] = len(m) - len(keep)
-        m = matching.Matches(
-            m.q_idx[keep], m.m_idx[keep], m.q_xy[keep], m.m_xy[keep], m.dist[keep], m.n_examined
-        )
-    rec["matches"] = len(m)
-    rec["query_examined"] = m.n_examined
-    if len(m) < 4:
-        rec.update(reason="fewer than 4 matches", seconds=time.perf_counter() - t0)
-        return rec, m, None
-    fit = matching.fit_homography(m.q_xy, m.m_xy, source.gsd_m, conf.get("ransac", {}), seed)
+    hyps = _hypotheses(qf, source, ids, mxy, knn, conf, nt, mdesc, guide)
+    rec["matcher"] = hyps[0][2]
     ext = mxy.max(axis=0) - mxy.min(axis=0)
     area_px = float(max(ext[0], source.gsd_m) * max(ext[1], source.gsd_m)) / source.gsd_m**2
-    dec = acceptance.decide(
-        fit.H,
-        fit.residual_px,
-        fit.n_inliers,
-        area_px,
-        qf.width,
-        qf.height,
-        gsd_m,
-        conf.get("acceptance", {}),
-        n_candidates=n_candidates,
-        origin=qf.origin,
-        inlier_q_xy=None if fit.H is None else m.q_xy[fit.inliers],
-    )
+    best: tuple | None = None
+    for m, n_tests, _kind in hyps:
+        if guide is not None:
+            d = np.linalg.norm(matching.apply_h(guide[0], m.q_xy) - m.m_xy, axis=1)
+            keep = np.flatnonzero(d <= guide[1])
+            rec["guided_dropped"] = len(m) - len(keep)
+            m = matching.Matches(
+                m.q_idx[keep], m.m_idx[keep], m.q_xy[keep], m.m_xy[keep], m.dist[keep], m.n_examined
+            )
+        if len(m) < 4:
+            if best is None:
+                best = ((False, -math.inf, len(m)), m, None, None)
+            continue
+        fit = matching.fit_homography(m.q_xy, m.m_xy, source.gsd_m, conf.get("ransac", {}), seed)
+        dec = acceptance.decide(
+            fit.H,
+            fit.residual_px,
+            fit.n_inliers,
+            area_px,
+            qf.width,
+            qf.height,
+            gsd_m,
+            conf.get("acceptance", {}),
+            n_candidates=n_candidates * n_tests,
+            origin=qf.origin,
+            inlier_q_xy=None if fit.H is None else m.q_xy[fit.inliers],
+        )
+        lnfa = dec.get("log10_nfa")
+        key = (
+            bool(dec["accepted"]),
+            -lnfa if lnfa is not None and math.isfinite(lnfa) else -math.inf,
+            len(m),
+        )
+        if best is None or best[2] is None or key > best[0]:
+            best = (key, m, fit, dec)
+    assert best is not None
+    _key, m, fit, dec = best
+    rec["matches"] = len(m)
+    rec["query_examined"] = m.n_examined
+    if fit is None:
+        rec.update(reason="fewer than 4 matches", seconds=time.perf_counter() - t0)
+        return rec, m, None
     rec.update(
         inliers=fit.n_inliers,
         accepted=bool(dec["accepted"]),
@@ -230,6 +264,57 @@ def verify(
 
 
 # ----------------------------------------------------------------------------- candidates
+
+
+def _hypotheses(
+    qf: QueryFeatures,
+    source: MapSource,
+    ids: np.ndarray,
+    mxy: np.ndarray,
+    knn: matching.KnnFn,
+    conf: dict[str, Any],
+    nt: int | None,
+    mdesc: np.ndarray | None = None,
+    guide: tuple[np.ndarray, float] | None = None,
+) -> list[tuple[matching.Matches, int, str]]:
+    """Correspondence sets to fit, each with its multiple-test count: ``register.matcher``.
+
+    ``paper``: one set, the paper's ratio test (``register.ratio``, stop at Nt). ``vote``
+    (issue 11): both contrast polarities of the query, a loose ratio, keypoint-size agreement and
+    the strongest rotation peaks (georeg.crossspectral.rotation_hypotheses); falls back to
+    ``paper`` when the map or the query has no keypoint geometry. With ``guide`` = (H, radius)
+    (the fuse stage's re-match around an accepted part), ``vote`` matches every query feature
+    among the map features within the radius of H's prediction, with the ratio test among
+    those local candidates (``guided_ratio``, 0.8; georeg.crossspectral.guided_matches).
+    """
+    mc = crossspectral.matcher_conf(conf)
+    method = str(mc.get("method", "paper"))
+    if method not in ("paper", "vote"):
+        raise ValueError(f"unknown register.matcher.method {method!r} (vote | paper)")
+    q_xy, q_desc, q_resp, q_ang, q_size = qf.xy, qf.desc, qf.response, qf.angle, qf.size
+    if mc.get("polarity") == "both" and len(qf):
+        q_xy, q_desc, q_resp = crossspectral.add_polarity(q_xy, q_desc, q_resp)
+        if q_ang is not None and q_size is not None:
+            q_ang = np.r_[q_ang, (q_ang + 180.0) % 360.0]
+            q_size = np.r_[q_size, q_size]
+    if method == "vote" and guide is not None and mdesc is not None:
+        gm = crossspectral.guided_matches(
+            q_xy, q_desc, guide[0], mxy, mdesc, guide[1], float(mc.get("guided_ratio", 0.8)), knn
+        )
+        return [(gm, 1, "guided")]
+    geom = source.geometry(ids) if method == "vote" else None
+    if method == "vote" and geom is not None and q_ang is not None and q_size is not None:
+        m_ang, m_scale = geom
+        hyps = crossspectral.rotation_hypotheses(
+            q_xy, q_desc, q_ang, q_size, mxy, m_ang, m_scale / source.gsd_m, knn, mc
+        )
+        if hyps:
+            return [(m, n, "vote") for m, n in hyps]
+        z = np.zeros(0, np.int64)
+        empty = matching.Matches(z, z, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), len(q_desc))
+        return [(empty, 1, "vote")]
+    m = matching.ratio_matches(q_xy, q_desc, q_resp, mxy, knn, float(conf.get("ratio", 0.7)), nt)
+    return [(m, 1, "paper")]
 
 
 def footprint_diagonal_m(qf: QueryFeatures, feature_gsd: float, gsd_m: float | None) -> float:
@@ -399,6 +484,21 @@ def load_source(index_path: str | Path, grid_path: str | Path | None = None) -> 
     return src
 
 
+def gsd_in_map_units(gsd_m: float | None, crs_wkt: str | None) -> float | None:
+    """The query's ``gsd_m`` (metres) in the map CRS's horizontal unit (feet maps: / 0.3048...).
+
+    Everything on the map side (feature GSD, keypoint xy, homography scale) is in CRS units.
+    """
+    if not gsd_m or not crs_wkt:
+        return gsd_m
+    from pyproj import CRS
+
+    crs = CRS.from_user_input(crs_wkt)
+    if crs.is_projected and crs.axis_info:
+        return float(gsd_m) / float(crs.axis_info[0].unit_conversion_factor)
+    return gsd_m
+
+
 def run_search_part(
     band_tif: str,
     band_json: str,
@@ -420,15 +520,14 @@ def run_search_part(
     u8 = read_query_band(band_tif)
     source = load_source(index_path, grid_path)
     t_load = time.perf_counter() - t0
-    factors = feature_scales(
-        meta.get("gsd_m"), source.gsd_m, reg_conf.get("unknown_gsd_factors", [1.0])
-    )
+    gsd = gsd_in_map_units(meta.get("gsd_m"), source.crs_wkt)
+    factors = feature_scales(gsd, source.gsd_m, reg_conf.get("unknown_gsd_factors", [1.0]))
     rows = part_rows(u8.shape[0], int(reg_conf.get("parts", 2)), part)
     t1 = time.perf_counter()
     qf = query_features(u8, rows, factors, source.features_conf)
     t_feat = time.perf_counter() - t1
     log.info("part %d rows %s: %d query features at factors %s", part, rows, len(qf), factors)
-    res = {"part": part, **search_part(qf, source, reg_conf, meta.get("gsd_m"), seed + 1000 * part)}
+    res = {"part": part, **search_part(qf, source, reg_conf, gsd, seed + 1000 * part)}
     res["timings_s"] = {"load": t_load, "features": t_feat, "search": res["seconds"]}
     res["seconds"] = time.perf_counter() - t0
     write_json(out_json, res)

@@ -16,12 +16,16 @@ def reg_query(wildcards):
 
 def reg_image_files(wildcards):
     """The query image, plus the ENVI data file next to a header (so a changed cube reruns)."""
+    from georeg.errors import InputError
     from georeg.query_io import find_envi_data
 
     image = Path(reg_query(wildcards)["image"])
     files = [str(image)]
     if image.suffix.lower() == ".hdr" and image.exists():
-        files.append(str(find_envi_data(image)))
+        try:
+            files.append(str(find_envi_data(image)))
+        except InputError:
+            pass  # no data file: the rule's script reports it as one line, not a DAG traceback
     return files
 
 
@@ -80,8 +84,8 @@ rule fuse_parts:
         dsm=REG_DSM,
         truth=reg_truth,
     output:
-        registration="results/queries/{name}/registration.json",
-        geolocation="results/queries/{name}/geolocation.tif",
+        registration="results/queries/{name}/registration_global.json",
+        geolocation="results/queries/{name}/geolocation_global.tif",
     params:
         register=config["register"],
         seed=REG_SEED,
@@ -92,6 +96,32 @@ rule fuse_parts:
         mem_mb=3000,
     script:
         "../../scripts/register_fuse_parts.py"
+
+
+# Sub-pixel local refinement (issue 12): tie points against the orthophoto rendered through the
+# global mapping, a per-line / polynomial / TPS model -> the final registration.json and
+# geolocation.tif that products and the report consume. Only `refine:` keys are params, so tuning
+# them never reruns the search or the fusion. Disabled: the global files are passed through.
+rule refine_registration:
+    input:
+        band="results/queries/{name}/band.tif",
+        registration="results/queries/{name}/registration_global.json",
+        geolocation="results/queries/{name}/geolocation_global.tif",
+        ortho="results/map/mosaic/ortho.vrt",
+        dsm=REG_DSM,
+        truth=reg_truth,
+    output:
+        registration="results/queries/{name}/registration.json",
+        geolocation="results/queries/{name}/geolocation.tif",
+    params:
+        refine=config["refine"],
+    log:
+        "logs/register/refine_registration/{name}.log",
+    threads: 1
+    resources:
+        mem_mb=3000,
+    script:
+        "../../scripts/register_refine.py"
 
 
 # geolocation.tif is always written (all NaN when the query is not found)
