@@ -14,6 +14,12 @@ report: "workflow/report/workflow.rst"
 
 
 include: "workflow/rules/common.smk"
+
+
+wildcard_constraints:
+    name=query_name_pattern(),
+
+
 include: "workflow/rules/demo.smk"
 include: "workflow/rules/map.smk"
 include: "workflow/rules/index.smk"

@@ -1,6 +1,9 @@
-"""Shared helpers: config loading (user map/queries replace the demo's), validation, targets."""
+"""Shared helpers: config loading (user map/queries replace the demo's), validation, targets,
+and every stage's input functions (kept here so that the stage files hold only rules).
+"""
 
 import copy
+import json
 import re
 from pathlib import Path
 
@@ -25,13 +28,14 @@ validate(config, schema="../schemas/config.schema.yaml")
 QUERIES = sorted(config["queries"])
 
 
-wildcard_constraints:
-    name="|".join(re.escape(q) for q in QUERIES) or "(?!)",
+def query_name_pattern():
+    """Wildcard constraint for {name}: exactly the configured queries (nothing else matches)."""
+    return "|".join(re.escape(q) for q in QUERIES) or "(?!)"
 TARGETS = []  # each stage file appends its final outputs (paths or input functions)
 
 
 def all_inputs(wildcards):
-    """Everything `rule all` asks for: the union of what each stage registered."""
+    """Everything the default target asks for: the union of what each stage registered."""
     out = []
     for t in TARGETS:
         t = t(wildcards) if callable(t) else t
@@ -46,3 +50,183 @@ def orthophoto_paths():
 
 def lidar_paths():
     return list(config["map"].get("lidar") or [])
+
+
+# ----------------------------------------------------------------- map stage
+
+
+def map_tile_ids():
+    """Tile ids of the map grid (after the map_grid checkpoint has run)."""
+    with open(checkpoints.map_grid.get().output[0]) as f:
+        return sorted(json.load(f)["tiles"])
+
+
+
+def map_elevation_source():
+    """'lidar' when map.lidar lists files, else 'dem' when map.dem is set, else 'none'."""
+    if lidar_paths():
+        return "lidar"
+    return "dem" if config["map"].get("dem") else "none"
+
+
+
+def map_elevation_params():
+    """Only the map_prep keys that change the elevation result of the active source."""
+    mp = config["map_prep"]
+    if map_elevation_source() == "lidar":
+        keys = ["point_margin_m", "drop_classes", "outlier", "dsm_fill_max_m", "dtm_fill", "dtm_window_m"]
+        out = {k: mp[k] for k in keys}
+        out["lidar_crs"] = config["map"].get("lidar_crs")
+        return out
+    return {"dem_resampling": mp["dem_resampling"]}
+
+
+
+def map_elevation_inputs(wildcards):
+    src = map_elevation_source()
+    if src == "lidar":
+        return lidar_paths()
+    return [config["map"]["dem"]] if src == "dem" else []
+
+
+
+def map_layer_tiles(wildcards):
+    return expand("results/map/tiles/{tile}/{layer}.tif", tile=map_tile_ids(), layer=wildcards.layer)
+
+
+
+def map_targets(wildcards):
+    """Final outputs of the map stage: per-tile rasters and points, mosaics, overview."""
+    tiles = map_tile_ids()
+    out = expand(
+        "results/map/tiles/{tile}/{name}",
+        tile=tiles,
+        name=["ortho.tif"] + [f"{l}.tif" for l in MAP_ELEV_LAYERS] + ["points.laz"],
+    )
+    out += expand("results/map/mosaic/{layer}.vrt", layer=MAP_MOSAIC_LAYERS)
+    out.append("results/map/overview.png")
+    return out
+
+
+
+# ----------------------------------------------------------------- index stage
+
+
+def index_tile_ids():
+    """Tile ids of the map grid (after the map_grid checkpoint has run)."""
+    with open(checkpoints.map_grid.get().output[0]) as f:
+        return sorted(json.load(f)["tiles"])
+
+
+
+def index_feature_dirs(wildcards):
+    return expand("results/index/features/{tile}", tile=index_tile_ids())
+
+
+
+def index_vocabulary_seed():
+    seed = config["vocabulary"].get("seed")
+    return config["seed"] if seed is None else seed
+
+
+
+# ----------------------------------------------------------------- register stage
+
+
+def reg_query(wildcards):
+    return config["queries"][wildcards.name]
+
+
+
+def reg_image_files(wildcards):
+    """The query image, plus the ENVI data file next to a header (so a changed cube reruns)."""
+    from georeg.errors import InputError
+    from georeg.query_io import find_envi_data
+
+    image = Path(reg_query(wildcards)["image"])
+    files = [str(image)]
+    if image.suffix.lower() == ".hdr" and image.exists():
+        try:
+            files.append(str(find_envi_data(image)))
+        except InputError:
+            pass  # no data file: the rule's script reports it as one line, not a DAG traceback
+    return files
+
+
+
+def reg_truth(wildcards):
+    truth = reg_query(wildcards).get("truth")
+    return [truth] if truth else []
+
+
+
+# ----------------------------------------------------------------- products stage
+
+
+def prod_image_files(wildcards):
+    """The query image, plus the ENVI data file next to a header (so a changed cube reruns)."""
+    from georeg.query_io import find_envi_data
+
+    image = Path(config["queries"][wildcards.name]["image"])
+    files = [str(image)]
+    if image.suffix.lower() == ".hdr" and image.exists():
+        files.append(str(find_envi_data(image)))
+    return files
+
+
+
+def prod_point_tiles(wildcards):
+    """Filtered map points of every tile (known after the map_grid checkpoint)."""
+    if not config["products"]["points"]["enabled"]:
+        return []
+    return expand("results/map/tiles/{tile}/points.laz", tile=map_tile_ids())
+
+
+
+def prod_labels(wildcards):
+    labels = config["queries"][wildcards.name].get("labels")
+    return [labels] if labels else []
+
+
+
+# ----------------------------------------------------------------- report stage
+
+
+def rep_query(wildcards):
+    return config["queries"][wildcards.name]
+
+
+
+def rep_optional(key):
+    """Input function: the query's `truth` / `labels` file as a one-item list, or nothing."""
+
+    def f(wildcards):
+        v = rep_query(wildcards).get(key)
+        return [v] if v else []
+
+    return f
+
+
+
+def rep_products_defined():
+    """True when a rule (the products stage) writes results/products/{name}/products.json."""
+    for r in workflow.rules:
+        if any(str(o).endswith("products/{name}/products.json") for o in r.output):
+            return True
+    return False
+
+
+
+def rep_products(wildcards):
+    """The products manifest (segmentation), when `report.segmentation` and the stage exists."""
+    if not REP["segmentation"] or not rep_products_defined():
+        return []
+    return [f"results/products/{wildcards.name}/products.json"]
+
+
+
+def rep_benchmark(wildcards):
+    """results/benchmark/summary.csv when `python benchmarks/run.py` wrote it (then a newer one
+    rebuilds the page); the benchmark is not a rule: it measures the library, minutes long."""
+    return [REP_BENCH] if Path(REP_BENCH).exists() else []
+

@@ -1,7 +1,6 @@
 # Feature index (issue 4): SIFT features per map tile -> k-means visual words -> the map index.
 # Params hold only the `features:` / `vocabulary:` sections, so changing the matching settings
 # (`register:`) reruns nothing here, while changing detector settings re-extracts every tile.
-import json
 
 INDEX_DIR = "results/index/map"
 # keep in sync with georeg.index.INDEX_ARRAYS (tests/test_index.py checks it)
@@ -10,21 +9,6 @@ INDEX_ARRAYS = [
     "tile_offsets", "tile_bounds", "centroids", "ivf_offsets", "ivf_ids", "df", "idf",
     "wt_offsets", "wt_tile", "wt_count", "tile_norm",
 ]
-
-
-def index_tile_ids():
-    """Tile ids of the map grid (after the map_grid checkpoint has run)."""
-    with open(checkpoints.map_grid.get().output[0]) as f:
-        return sorted(json.load(f)["tiles"])
-
-
-def index_feature_dirs(wildcards):
-    return expand("results/index/features/{tile}", tile=index_tile_ids())
-
-
-def index_vocabulary_seed():
-    seed = config["vocabulary"].get("seed")
-    return config["seed"] if seed is None else seed
 
 
 rule tile_features:

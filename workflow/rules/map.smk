@@ -2,58 +2,9 @@
 # `map_grid` is a checkpoint: the tile list is known only once the orthophotos have been read.
 # Each rule gets only the params it uses, so a changed LiDAR setting reruns the elevation tiles,
 # their mosaics and the overview, never the orthophoto tiles (see docs/ARCHITECTURE.md "map").
-import json
 
 MAP_ELEV_LAYERS = ["dsm", "dtm", "ndsm", "density"]
 MAP_MOSAIC_LAYERS = ["ortho"] + MAP_ELEV_LAYERS
-
-
-def map_tile_ids():
-    """Tile ids of the map grid (after the map_grid checkpoint has run)."""
-    with open(checkpoints.map_grid.get().output[0]) as f:
-        return sorted(json.load(f)["tiles"])
-
-
-def map_elevation_source():
-    """'lidar' when map.lidar lists files, else 'dem' when map.dem is set, else 'none'."""
-    if lidar_paths():
-        return "lidar"
-    return "dem" if config["map"].get("dem") else "none"
-
-
-def map_elevation_params():
-    """Only the map_prep keys that change the elevation result of the active source."""
-    mp = config["map_prep"]
-    if map_elevation_source() == "lidar":
-        keys = ["point_margin_m", "drop_classes", "outlier", "dsm_fill_max_m", "dtm_fill", "dtm_window_m"]
-        out = {k: mp[k] for k in keys}
-        out["lidar_crs"] = config["map"].get("lidar_crs")
-        return out
-    return {"dem_resampling": mp["dem_resampling"]}
-
-
-def map_elevation_inputs(wildcards):
-    src = map_elevation_source()
-    if src == "lidar":
-        return lidar_paths()
-    return [config["map"]["dem"]] if src == "dem" else []
-
-
-def map_layer_tiles(wildcards):
-    return expand("results/map/tiles/{tile}/{layer}.tif", tile=map_tile_ids(), layer=wildcards.layer)
-
-
-def map_targets(wildcards):
-    """Final outputs of the map stage: per-tile rasters and points, mosaics, overview."""
-    tiles = map_tile_ids()
-    out = expand(
-        "results/map/tiles/{tile}/{name}",
-        tile=tiles,
-        name=["ortho.tif"] + [f"{l}.tif" for l in MAP_ELEV_LAYERS] + ["points.laz"],
-    )
-    out += expand("results/map/mosaic/{layer}.vrt", layer=MAP_MOSAIC_LAYERS)
-    out.append("results/map/overview.png")
-    return out
 
 
 checkpoint map_grid:

@@ -3,7 +3,6 @@
 # "products"). Two rules so that a changed segmentation never recomputes the cube. The manifests
 # (cube.json, products.json) are the only declared outputs: a not_found query gets a manifest that
 # says so and no heavy file; a registered query's manifest lists every product file.
-from pathlib import Path
 
 PROD_GEOLOC = "results/queries/{name}/geolocation.tif"
 PROD_REG = "results/queries/{name}/registration.json"
@@ -12,29 +11,6 @@ PROD_ORTHO = "results/map/mosaic/ortho.vrt"
 PROD_GRID = "results/map/grid.json"
 PROD_CUBE_KEYS = ("grid", "gsd_m", "resampling", "chunk_bands", "inverse_step_px", "envi_copy")
 PROD_MAKE_KEYS = ("chunk_bands", "inverse_step_px", "fused", "reflectance_scale", "points", "segmentation")
-
-
-def prod_image_files(wildcards):
-    """The query image, plus the ENVI data file next to a header (so a changed cube reruns)."""
-    from georeg.query_io import find_envi_data
-
-    image = Path(config["queries"][wildcards.name]["image"])
-    files = [str(image)]
-    if image.suffix.lower() == ".hdr" and image.exists():
-        files.append(str(find_envi_data(image)))
-    return files
-
-
-def prod_point_tiles(wildcards):
-    """Filtered map points of every tile (known after the map_grid checkpoint)."""
-    if not config["products"]["points"]["enabled"]:
-        return []
-    return expand("results/map/tiles/{tile}/points.laz", tile=map_tile_ids())
-
-
-def prod_labels(wildcards):
-    labels = config["queries"][wildcards.name].get("labels")
-    return [labels] if labels else []
 
 
 rule products_cube:

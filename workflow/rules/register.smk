@@ -1,37 +1,12 @@
 # Query registration (issue 5): query band -> one search job per along-track part -> fused
 # registration + per-pixel geolocation. Params hold only what each rule uses, so changing the
 # matching settings (`register:`) reruns the searches and the fusion, never the band extraction.
-from pathlib import Path
 
 REG_PARTS = list(range(int(config["register"]["parts"])))
 REG_SEED = config["seed"] if config["register"].get("seed") is None else config["register"]["seed"]
 REG_INDEX_META = "results/index/map/meta.json"
 REG_GRID = "results/map/grid.json"
 REG_DSM = "results/map/mosaic/dsm.vrt"
-
-
-def reg_query(wildcards):
-    return config["queries"][wildcards.name]
-
-
-def reg_image_files(wildcards):
-    """The query image, plus the ENVI data file next to a header (so a changed cube reruns)."""
-    from georeg.errors import InputError
-    from georeg.query_io import find_envi_data
-
-    image = Path(reg_query(wildcards)["image"])
-    files = [str(image)]
-    if image.suffix.lower() == ".hdr" and image.exists():
-        try:
-            files.append(str(find_envi_data(image)))
-        except InputError:
-            pass  # no data file: the rule's script reports it as one line, not a DAG traceback
-    return files
-
-
-def reg_truth(wildcards):
-    truth = reg_query(wildcards).get("truth")
-    return [truth] if truth else []
 
 
 rule query_band:

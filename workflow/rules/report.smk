@@ -2,41 +2,11 @@
 # figures, the self-contained results/report/index.html, and Snakemake's own report
 # (`snakemake --report report.html`, captions in workflow/report/). Params hold only the
 # `report:` keys each rule uses: changing them never reruns a registration.
-from pathlib import Path
 
 REP = config["report"]
 REP_GRID = "results/map/grid.json"
 REP_PARTS = list(range(int(config["register"]["parts"])))
 REP_BENCH = "results/benchmark/summary.csv"
-
-
-def rep_query(wildcards):
-    return config["queries"][wildcards.name]
-
-
-def rep_optional(key):
-    """Input function: the query's `truth` / `labels` file as a one-item list, or nothing."""
-
-    def f(wildcards):
-        v = rep_query(wildcards).get(key)
-        return [v] if v else []
-
-    return f
-
-
-def rep_products_defined():
-    """True when a rule (the products stage) writes results/products/{name}/products.json."""
-    for r in workflow.rules:
-        if any(str(o).endswith("products/{name}/products.json") for o in r.output):
-            return True
-    return False
-
-
-def rep_products(wildcards):
-    """The products manifest (segmentation), when `report.segmentation` and the stage exists."""
-    if not REP["segmentation"] or not rep_products_defined():
-        return []
-    return [f"results/products/{wildcards.name}/products.json"]
 
 
 rule evaluate_query:
@@ -93,12 +63,6 @@ rule report_figures:
         mem_mb=2000,
     script:
         "../../scripts/report_figures.py"
-
-
-def rep_benchmark(wildcards):
-    """results/benchmark/summary.csv when `python benchmarks/run.py` wrote it (then a newer one
-    rebuilds the page); the benchmark is not a rule: it measures the library, minutes long."""
-    return [REP_BENCH] if Path(REP_BENCH).exists() else []
 
 
 rule report_html:

@@ -1,0 +1,22 @@
+# Demo frames (issue 9): perspective drone views of the demo city with known poses, rendered by
+# georeg.demo.frames from scene.json (another sun, camera response, noise, lens distortion).
+
+DEMO_FRAME_VIEWS = (config.get("frame_loc") or {}).get("demo_frames") or {}
+
+
+rule demo_frames:
+    input:
+        scene="results/demo/scene.json",
+    output:
+        frames=expand(
+            "results/demo/frames/{view}.png",
+            view=[v["name"] for v in DEMO_FRAME_VIEWS.get("views") or []],
+        ),
+        truth="results/demo/frames/truth.json",
+    params:
+        demo_frames=DEMO_FRAME_VIEWS,
+    log:
+        "logs/demo/demo_frames.log",
+    threads: 1
+    script:
+        "../../scripts/demo_frames.py"
