@@ -26,6 +26,8 @@ include: "workflow/rules/index.smk"
 include: "workflow/rules/register.smk"
 include: "workflow/rules/products.smk"
 include: "workflow/rules/report.smk"
+include: "workflow/rules/demo_frames.smk"
+include: "workflow/rules/frames.smk"
 
 
 rule all:

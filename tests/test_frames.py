@@ -1,0 +1,193 @@
+"""Frame geo-localisation (issue 9): renderer sanity, demo frames -> pose errors, not_found.
+
+A 640 m demo scene is generated in a tmp dir, mapped as one tile (LiDAR -> DSM + points.laz),
+indexed (SIFT, 200 words), then a nadir frame at 120 m and a frame outside the map are rendered
+by georeg.demo.frames and localised. Bounds are loose multiples of what was measured
+(docs/BENCHMARKS.md "Frame geo-localisation") so that a regression fails but noise does not.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from georeg.render_points import (
+    PinholeCamera,
+    PointCloud,
+    heightfield_cloud,
+    look_at,
+    pose_from_angles,
+    render,
+)
+
+
+def _cam(C, R, w=160, h=120, f=150.0) -> PinholeCamera:
+    return PinholeCamera(f, f, (w - 1) / 2 + 3.0, (h - 1) / 2 - 2.0, w, h, R, np.asarray(C, float))
+
+
+def test_point_projects_to_right_pixel_with_right_depth():
+    C = np.array([100.0, 200.0, 50.0])
+    R = pose_from_angles(C, 30.0, 20.0)
+    cam = _cam(C, R)
+    X = np.array([[110.0, 215.0, 3.0]])
+    uv, z = cam.project(X)
+    # hand computation X_cam = R (X - C), u = fx x / z + cx
+    xc = R @ (X[0] - C)
+    assert z[0] == pytest.approx(xc[2])
+    assert uv[0, 0] == pytest.approx(cam.fx * xc[0] / xc[2] + cam.cx)
+    r = render(PointCloud(X, np.array([[200, 100, 50]], np.uint8), 0.01), cam)
+    col, row = int(np.rint(uv[0, 0])), int(np.rint(uv[0, 1]))
+    assert r.mask.sum() == 1 and r.mask[row, col]
+    assert r.depth[row, col] == pytest.approx(xc[2], rel=1e-6)
+    assert tuple(r.image[row, col]) == (200, 100, 50)
+    back, ok = r.points_at(uv)
+    assert ok[0] and np.allclose(back[0], X[0], atol=1e-3 * xc[2])
+
+
+def test_zbuffer_keeps_nearest_and_axes_follow_opencv():
+    C = np.array([0.0, 0.0, 100.0])
+    R = look_at(C, [0, 0, 0], up=[0, 1, 0])  # nadir, north up
+    assert np.allclose(R[2], [0, 0, -1]) and np.allclose(R[0], [1, 0, 0])  # x right = east
+    cam = _cam(C, R)
+    # east of the centre -> right of the principal point; north -> above (smaller row)
+    uv, _ = cam.project(np.array([[10.0, 0, 0], [0, 10.0, 0]]))
+    assert uv[0, 0] > cam.cx and uv[1, 1] < cam.cy
+    far = PointCloud(
+        np.array([[0.0, 0, 0], [0, 0, 20.0]]), np.array([[10, 10, 10], [250, 0, 0]], np.uint8), 2.0
+    )
+    r = render(far, cam)
+    row, col = int(np.rint(cam.cy)), int(np.rint(cam.cx))
+    assert r.depth[row, col] == pytest.approx(80.0) and r.image[row, col, 0] == 250
+
+
+def test_heightfield_walls_fill_facades():
+    from affine import Affine
+
+    dsm = np.zeros((20, 20), np.float32)
+    dsm[5:10, 5:10] = 10.0
+    rgb = np.full((20, 20, 3), 128, np.uint8)
+    cloud = heightfield_cloud(rgb, dsm, Affine(1, 0, 0, 0, -1, 20), wall_step_m=1.0)
+    walls = cloud.xyz[400:]
+    assert len(walls) > 0 and walls[:, 2].min() >= 0 and walls[:, 2].max() < 10
+    # 20 edge cells of the 5x5 block, 10 wall points each
+    assert len(walls) == 16 * 10
+
+
+# ----------------------------------------------------------------------------- demo pipeline
+
+
+@pytest.fixture(scope="module")
+def demo_map(tmp_path_factory):
+    from georeg.demo import generate_scene
+    from georeg.demo.frames import generate_frames
+    from georeg.elevation import LAYERS, make_elevation_tile
+    from georeg.features import extract_tile_from_grid
+    from georeg.index import MapIndex
+    from georeg.mapgrid import make_ortho_tile, write_grid
+    from georeg.vocabulary import build_vocabulary
+
+    tmp = tmp_path_factory.mktemp("frames")
+    conf = {"seed": 7, "size_m": 640, "margin_m": 320, "lidar_tiles": 1,
+            "query": {"samples": 64, "lines": 64, "bands": 8}}  # fmt: skip
+    paths = generate_scene(conf, tmp / "demo")
+    write_grid(tmp / "grid.json", [paths["orthophoto"]], 1024, 64)
+    tile = "r000_c000"
+    tdir = tmp / "tiles" / tile
+    make_ortho_tile(tmp / "grid.json", tile, tdir / "ortho.tif")
+    outs = {k: str(tdir / f"{k}.tif") for k in LAYERS} | {"points": str(tdir / "points.laz")}
+    make_elevation_tile(str(tdir / "ortho.tif"), outs, [paths["lidar_0"]])
+    feat = {"rootsift": True, "max_features_per_mpx": 8000}
+    fdir = tmp / "features" / tile
+    extract_tile_from_grid(
+        tmp / "grid.json", tile, tdir / "ortho.tif", outs["dsm"], outs["ndsm"], feat, fdir
+    )
+    build_vocabulary([fdir], tmp / "vocab", {"k": 200, "sample_size": 50000}, 42)
+    crs = json.loads((tmp / "grid.json").read_text()).get("crs")
+    MapIndex.build(
+        [fdir], [tile], np.load(tmp / "vocab" / "centroids.npy"), tmp / "index", crs_wkt=crs
+    )
+    views = [{"name": "nadir_120", "off_nadir_deg": 0.0, "agl_m": 120.0, "heading_deg": 30.0},
+             {"name": "outside", "off_nadir_deg": 20.0, "agl_m": 150.0, "heading_deg": 300.0, "outside": True}]  # fmt: skip
+    generate_frames(paths["scene"], tmp / "frames", views, seed=9)
+    return tmp, tdir, outs
+
+
+@pytest.fixture(scope="module")
+def localised(demo_map):
+    from georeg.demo.frames import CAMERA
+    from georeg.frame_localize import localize_set
+
+    tmp, tdir, outs = demo_map
+    cam = {k: CAMERA[k] for k in ("fx", "fy", "cx", "cy", "dist")}
+    conf = {"refine": {"enabled": True, "max_evals": 80}}
+    poses = localize_set(str(tmp / "frames" / "*.png"), cam, tmp / "index", tdir / "ortho.tif", outs["dsm"], [],
+                         conf, tmp / "out", str(tmp / "frames" / "truth.json"))  # fmt: skip
+    return tmp, {Path(p["image"]).stem: p for p in poses}
+
+
+def test_demo_truth_pose_reprojects_the_map(demo_map):
+    """The demo frame's truth pose is consistent with the map: rendering the map at the truth
+    pose and at a pose 5 m off, the truth render correlates better with the frame."""
+    import cv2
+
+    from georeg.render_points import read_heightfield
+
+    tmp, tdir, outs = demo_map
+    t = json.loads((tmp / "frames" / "truth.json").read_text())[0]
+    it = t["intrinsics"]
+    K = np.array([[it["fx"], 0, it["cx"]], [0, it["fy"], it["cy"]], [0, 0, 1]])
+    frame = cv2.undistort(
+        cv2.imread(str(tmp / "frames" / t["image"]), cv2.IMREAD_GRAYSCALE), K, np.array(it["dist"])
+    )
+    C, R = np.array(t["camera_center_xyz"]), np.array(t["R_world_to_cam"])
+    cloud = read_heightfield(
+        tdir / "ortho.tif", outs["dsm"], (C[0] - 200, C[1] - 200, C[0] + 200, C[1] + 200)
+    )
+    cam = PinholeCamera(
+        it["fx"], it["fy"], it["cx"], it["cy"], it["width"], it["height"], R, C
+    ).scaled(0.25)
+    small = cv2.resize(frame, (cam.width, cam.height), interpolation=cv2.INTER_AREA).astype(float)
+
+    def ncc(c):
+        g = render(cloud, c).gray().astype(float)
+        a, b = g - g.mean(), small - small.mean()
+        return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
+
+    assert ncc(cam) > ncc(cam.with_pose(R, C + [5.0, 0, 0])) + 0.05
+
+
+def test_nadir_frame_pose_errors(localised):
+    _, poses = localised
+    p = poses["nadir_120"]
+    assert p["status"] == "registered", p.get("reason")
+    ev = p["evaluation"]
+    print(json.dumps(ev), p["timings_s"], p.get("refine"))
+    # measured on this scene: PnP 4.2 / 0.7 m, 2.1 deg; refined 4.6 / 0.9 m, 2.3 deg (a nadir view
+    # over flat ground: tilt and shift trade off); other frames 0.5-2.6 m (docs/BENCHMARKS.md)
+    assert ev["pnp"]["horizontal_m"] < 8.0 and ev["pnp"]["vertical_m"] < 3.0
+    assert ev["pnp"]["rotation_deg"] < 4.0
+    assert ev["final"]["horizontal_m"] < 8.0 and ev["final"]["vertical_m"] < 3.0
+    assert ev["final"]["rotation_deg"] < 4.0
+    R = np.array(p["R_world_to_cam"])
+    assert np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0
+    assert p["inliers"] >= 15 and p["reprojection_px"] < 4.0
+
+
+def test_outside_frame_not_found_and_outputs(localised):
+    tmp, poses = localised
+    assert poses["outside"]["status"] == "not_found"
+    assert poses["outside"]["camera_center_xyz"] is None
+    out = tmp / "out"
+    saved = json.loads((out / "poses.json").read_text())
+    assert {"image", "status", "camera_center_xyz", "R_world_to_cam", "intrinsics", "inliers",
+            "reprojection_px", "timings_s"} <= set(saved[0])  # fmt: skip
+    gj = json.loads((out / "cameras.geojson").read_text())
+    kinds = sorted(f["properties"]["kind"] for f in gj["features"])
+    assert kinds == ["camera", "footprint"]
+    assert "<Placemark>" in (out / "cameras.kml").read_text()
+    assert (out / "overlays" / "nadir_120.png").exists() and (
+        out / "overlays" / "outside.png"
+    ).exists()
