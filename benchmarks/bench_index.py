@@ -5,6 +5,7 @@
     python benchmarks/bench_index.py backends        # faiss vs MiniBatchKMeans: time, mse, retrieval
     python benchmarks/bench_index.py kmeans --k 10000 --n 1000000 --iterations 20
     python benchmarks/bench_index.py quantizer       # flat vs HNSW vs FLANN kd-tree, k = 100,000
+    python benchmarks/bench_index.py words --k 1000  # build_index: in-process words vs tile_words
 
 Data: ../shared/data/autzen/autzen.jpg (real RGB orthophoto, 3248 x 4385 px). Results are
 printed as JSON lines and appended to benchmarks/out/bench_index.jsonl.
@@ -402,9 +403,124 @@ def bench_quantizer(args: argparse.Namespace) -> None:
         )
 
 
+_CHILD = r"""
+import json, os, sys, time
+import faiss
+faiss.omp_set_num_threads(1)
+sys.path.insert(0, {root!r})
+from georeg import index as I
+t0, c0 = time.perf_counter(), os.times()
+{body}
+c1 = os.times()
+hwm = [l for l in open("/proc/self/status") if l.startswith("VmHWM:")][0].split()[1]
+print(json.dumps({{"s": time.perf_counter() - t0, "cpu_s": c1.user + c1.system - c0.user - c0.system,
+                   "peak_rss_mb": int(hwm) / 1024}}))
+"""
+
+
+def _child(body: str) -> dict:
+    """Run ``body`` in a fresh Python (like a Snakemake script job): its time, CPU, peak RSS."""
+    import subprocess
+
+    t0 = time.perf_counter()
+    res = subprocess.run(
+        [sys.executable, "-c", _CHILD.format(root=str(ROOT), body=body)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    rec = json.loads(res.stdout.strip().splitlines()[-1])
+    rec["process_s"] = time.perf_counter() - t0
+    return rec
+
+
+def bench_words(args: argparse.Namespace) -> None:
+    """build_index before (words assigned in process) vs after (tile_words jobs + a merge).
+
+    Each step runs in its own Python process, as the rules do: time inside, CPU, peak RSS
+    (VmHWM), and the process wall time including start-up. The two indexes must be identical.
+    K <= the number of autzen features: a real faiss vocabulary; above (the HNSW range), a
+    synthetic one (descriptors + noise, renormalised): the cost does not depend on the words.
+    """
+    import cv2
+
+    from georeg.features import dequantize, extract_tile_from_grid, merged_conf
+    from georeg.index import INDEX_ARRAYS
+    from georeg.vocabulary import build_vocabulary
+
+    cv2.setNumThreads(1)
+    tmp = Path(tempfile.mkdtemp(prefix="bench_words_"))
+    try:
+        grid, tids = write_tiles(tmp)
+        conf = merged_conf({})
+        dirs = []
+        for t in tids:
+            d = tmp / "tiles" / t
+            out = tmp / "features" / t
+            extract_tile_from_grid(
+                grid, t, d / "ortho.tif", d / "dsm.tif", d / "ndsm.tif", conf, out
+            )
+            dirs.append(out)
+        desc = np.concatenate([np.load(d / "desc.npy") for d in dirs])
+        cent = tmp / "vocabulary" / "centroids.npy"
+        if args.k <= len(desc):
+            build_vocabulary(dirs, cent.parent, {"k": args.k, "iterations": 20}, 42, 1)
+        else:
+            rng = np.random.default_rng(0)
+            c = dequantize(desc[rng.integers(0, len(desc), args.k)])
+            c += rng.normal(0, 0.02, c.shape).astype(np.float32)
+            c /= np.linalg.norm(c, axis=1, keepdims=True)
+            cent.parent.mkdir(parents=True)
+            np.save(cent, c.astype(np.float32))
+        dl = [str(d) for d in dirs]
+        before = _child(
+            f"I.build_from_grid({str(grid)!r}, {dl!r}, {str(cent)!r}, {str(tmp / 'before')!r})"
+        )
+        qpath = tmp / "vocabulary" / "quantizer.faiss"
+        quant = _child(f"I.save_word_quantizer({str(cent)!r}, {str(qpath)!r})")
+        words, per_tile = [], []
+        for d in dirs:
+            w = tmp / "words" / f"{d.name}.npy"
+            per_tile.append(
+                _child(
+                    f"I.assign_tile_words({str(d)!r}, {str(cent)!r}, {str(w)!r}, {str(qpath)!r})"
+                )
+            )
+            words.append(str(w))
+        after = _child(
+            f"I.build_from_grid({str(grid)!r}, {dl!r}, {str(cent)!r}, {str(tmp / 'after')!r}, {words!r})"
+        )
+        identical = all(
+            np.array_equal(
+                np.load(tmp / "before" / f"{n}.npy"), np.load(tmp / "after" / f"{n}.npy")
+            )
+            for n in INDEX_ARRAYS
+        )
+        r = lambda x: round(x, 3)  # noqa: E731
+        emit(
+            {
+                "bench": "words",
+                "k": args.k,
+                "features": int(len(desc)),
+                "tiles": len(dirs),
+                "before_build_index": {k: r(v) for k, v in before.items()},
+                "word_quantizer": {k: r(v) for k, v in quant.items()},
+                "tile_words_sum": {
+                    k: r(sum(p[k] for p in per_tile)) for k in ("s", "cpu_s", "process_s")
+                },
+                "tile_words_max": {k: r(max(p[k] for p in per_tile)) for k in per_tile[0]},
+                "after_build_index": {k: r(v) for k, v in after.items()},
+                "identical": identical,
+                "loadavg": os.getloadavg()[0],
+            }
+        )
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("stage", choices=["throughput", "kmeans", "backends", "quantizer"])
+    ap.add_argument("stage", choices=["throughput", "kmeans", "backends", "quantizer", "words"])
     ap.add_argument("--k", type=int, default=2000)
     ap.add_argument("--ks", type=int, nargs="+", default=[1000, 4000])
     ap.add_argument("--n", type=int, default=1_000_000)
@@ -421,6 +537,7 @@ def main() -> None:
         "kmeans": bench_kmeans,
         "backends": bench_backends,
         "quantizer": bench_quantizer,
+        "words": bench_words,
     }[args.stage](args)
 
 

@@ -41,7 +41,7 @@ OUT = ROOT / "benchmarks" / "out" / "bench_scaling.jsonl"
 
 STAGES = {
     "map": ("map_grid", "map_tile_ortho", "map_tile_elevation", "map_mosaic", "map_overview"),
-    "index": ("tile_features", "vocabulary", "build_index"),
+    "index": ("tile_features", "vocabulary", "word_quantizer", "tile_words", "build_index"),
     "register": (
         "query_band",
         "search_part",
@@ -50,11 +50,15 @@ STAGES = {
         "evaluate_query",
     ),
 }
-PER_TILE = ("map_tile_ortho", "map_tile_elevation", "tile_features")
+PER_TILE = ("map_tile_ortho", "map_tile_elevation", "tile_features", "tile_words")
+#: the per-tile rules of the Slurm group `tiles` (tile_words is modelled apart, at k = 100,000)
+TILE_CHAIN = ("map_tile_ortho", "map_tile_elevation", "tile_features")
 SCRIPT_RULE = {  # scripts/<name>.py -> rule name, where they differ
     "index_tile_features": "tile_features",
     "index_vocabulary": "vocabulary",
     "index_build": "build_index",
+    "index_word_quantizer": "word_quantizer",
+    "index_tile_words": "tile_words",
     "register_query_band": "query_band",
     "register_search_part": "search_part",
     "register_fuse_parts": "fuse_parts",
@@ -269,10 +273,16 @@ def table(recs: list[dict]) -> str:
 # County-scale model (docs/SCALING.md). Fixed inputs that are not measured here come from
 # docs/BENCHMARKS.md "Feature index": k-means k = 100,000 on 10^6 descriptors = 201 s per
 # iteration on 2 cores (402 core-s), HNSW word assignment at k = 100,000 = 0.5-1.0 ms per feature
-# per core; features per Mpx: 1,030 on the real autzen orthophoto, measured here on the synthetic
-# city (capped by features.max_features_per_mpx = 8000).
+# per core, HNSW graph of the 100,000 words (rule word_quantizer, once) 52 s; features per Mpx:
+# 1,030 on the real autzen orthophoto, measured here on the synthetic city (capped by
+# features.max_features_per_mpx = 8000). Word assignment runs in the per-tile `tile_words` jobs
+# (Slurm group `words`, 64 tiles per job, `group_cores` wide), each paying a process start-up
+# (Python, faiss, reading the saved quantizer: WORDS_STARTUP_S, measured in "Feature index").
 KMEANS_CORE_S_PER_ITER = 402.0
 ASSIGN_MS = (0.5, 1.0)
+HNSW_BUILD_S = 52.0
+WORDS_GROUP = 64
+WORDS_STARTUP_S = 1.5
 
 
 def estimate(recs: list[dict], gpx: float = 10.0, nodes=(1, 10, 50), cores_per_node: int = 32,
@@ -284,8 +294,8 @@ def estimate(recs: list[dict], gpx: float = 10.0, nodes=(1, 10, 50), cores_per_n
     # per FULL tile: the map's pixels over the 960 x 960 px a full tile adds (edge tiles of a
     # small map are partial, so CPU / tile count would under-estimate a county's full tiles)
     full_tiles = r["megapixels"] * 1e6 / 960**2
-    tile_cpu = sum(rules[n]["cpu_s"] for n in PER_TILE if n in rules) / full_tiles
-    tile_rss = max(rules[n]["peak_rss_mb"] for n in PER_TILE if n in rules)
+    tile_cpu = sum(rules[n]["cpu_s"] for n in TILE_CHAIN if n in rules) / full_tiles
+    tile_rss = max(rules[n]["peak_rss_mb"] for n in TILE_CHAIN if n in rules)
     side = math.sqrt(gpx * 1e9)
     per_side = math.ceil((side - 64) / 960)
     tiles = per_side**2
@@ -308,8 +318,9 @@ def estimate(recs: list[dict], gpx: float = 10.0, nodes=(1, 10, 50), cores_per_n
         f"iterations = {kmeans_core_s / 3600:.1f} core-h on {kmeans_threads} threads.",
         "",
         "| nodes (x 32 cores) | tile stages (map + features) | vocabulary (k = 100,000) "
-        "| build_index word assignment, 1 thread (1,030 / 8,000 features per Mpx) | total |",
-        "|---:|---:|---:|---:|---:|",
+        "| word assignment, tile_words (1,030 / 8,000 features per Mpx) "
+        "| build_index merge, 1 thread | total |",
+        "|---:|---:|---:|---:|---:|---:|",
     ]
     for n in nodes:
         concurrent = max(1, n * cores_per_node // group_cores)
@@ -317,18 +328,30 @@ def estimate(recs: list[dict], gpx: float = 10.0, nodes=(1, 10, 50), cores_per_n
         job_wall = group * tile_cpu / group_cores + latency_s
         t_tiles = math.ceil(jobs / concurrent) * job_wall
         t_kmeans = kmeans_core_s / min(kmeans_threads, cores_per_node)
-        lo = mpx * 1030 * (ASSIGN_MS[0] / 1e3 + build_cpu_per_feat)
-        hi = mpx * 8000 * (ASSIGN_MS[1] / 1e3 + build_cpu_per_feat)
-        h = 3600.0
+        # word assignment: per tile, in group jobs of WORDS_GROUP tiles, + the HNSW graph once
+        w_jobs = math.ceil(tiles / WORDS_GROUP)
+        words = []
+        for fpm, ms in ((1030, ASSIGN_MS[0]), (8000, ASSIGN_MS[1])):
+            per_tile = 0.9216 * fpm * ms / 1e3 + WORDS_STARTUP_S  # a full tile: 960 x 960 px new
+            w_job = WORDS_GROUP * per_tile / group_cores + latency_s
+            words.append(HNSW_BUILD_S + math.ceil(w_jobs / concurrent) * w_job)
+        # the merge (build_index): measured CPU per feature (it included the k = 1000 flat
+        # word assignment in the records before tile_words: an upper bound)
+        merge = (mpx * 1030 * build_cpu_per_feat, mpx * 8000 * build_cpu_per_feat)
+        lo = t_tiles + t_kmeans + words[0] + merge[0]
+        hi = t_tiles + t_kmeans + words[1] + merge[1]
         out.append(
-            f"| {n} | {t_tiles / 60:.0f} min | {t_kmeans / 60:.0f} min | {lo / h:.1f} - {hi / h:.0f} h "
-            f"| {(t_tiles + t_kmeans + lo) / h:.1f} - {(t_tiles + t_kmeans + hi) / h:.0f} h |"
+            f"| {n} | {t_tiles / 60:.0f} min | {t_kmeans / 60:.0f} min "
+            f"| {words[0] / 60:.0f} - {words[1] / 60:.0f} min "
+            f"| {merge[0] / 60:.1f} - {merge[1] / 60:.0f} min "
+            f"| {lo / 3600:.1f} - {hi / 3600:.1f} h |"
         )
     out += [
         "",
         f"CPU totals: tiles {tiles * tile_cpu / 3600:,.0f} core-h; k-means "
         f"{kmeans_core_s / 3600:.1f} core-h; word assignment {mpx * 1030 * ASSIGN_MS[0] / 1e3 / 3600:.1f}"
-        f" - {mpx * 8000 * ASSIGN_MS[1] / 1e3 / 3600:.0f} core-h; one query {reg_cpu:.0f} CPU-s "
+        f" - {mpx * 8000 * ASSIGN_MS[1] / 1e3 / 3600:.0f} core-h (+ {tiles * WORDS_STARTUP_S / 3600:.1f} "
+        f"core-h of tile_words process start-ups); one query {reg_cpu:.0f} CPU-s "
         f"(measured at k = {r['vocabulary_k']}); generating the synthetic county "
         f"{gen_cpu_per_mpx * mpx / 3600:.0f} core-h. Features per Mpx on the synthetic city: "
         f"{feat_per_mpx_synth:,.0f}. Disk per county (measured MB per Mpx x {mpx:,.0f} Mpx): "

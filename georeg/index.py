@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from georeg.atomic import atomic_path
 from georeg.errors import InputError
 from georeg.features import DESC_DIM, DESC_SCALE, dequantize
 
@@ -70,16 +71,26 @@ def _ranges(offsets: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return pos, which
 
 
+def quantizer_method(n_words: int, method: str = "auto") -> str:
+    """``method``, or for ``"auto"``: ``"flat"`` up to ``FLAT_MAX_WORDS`` words, ``"hnsw"`` above."""
+    if method == "auto":
+        return "flat" if n_words <= FLAT_MAX_WORDS else "hnsw"
+    if method not in ("flat", "hnsw", "kdtree"):
+        raise ValueError(f"unknown quantizer method {method!r}")
+    return method
+
+
 class WordQuantizer:
     """Nearest visual words of descriptors: exact faiss ``IndexFlatL2`` for small vocabularies,
     faiss ``IndexHNSWFlat`` (M = 32, efSearch = 64) above ``FLAT_MAX_WORDS``, or an OpenCV FLANN
     kd-tree (the paper's choice; 4 trees, 128 checks) when asked for ``method="kdtree"``."""
 
-    def __init__(self, centroids: np.ndarray, method: str = "auto") -> None:
+    def __init__(self, centroids: np.ndarray, method: str = "auto", _index: Any = None) -> None:
         self.centroids = np.ascontiguousarray(centroids, np.float32)
-        k = self.centroids.shape[0]
-        self.method = ("flat" if k <= FLAT_MAX_WORDS else "hnsw") if method == "auto" else method
-        if self.method == "flat":
+        self.method = quantizer_method(self.centroids.shape[0], method)
+        if _index is not None:  # from ``load``: the saved faiss structure
+            self._index = _index
+        elif self.method == "flat":
             import faiss
 
             self._index = faiss.IndexFlatL2(self.centroids.shape[1])
@@ -97,12 +108,50 @@ class WordQuantizer:
             finally:
                 faiss.omp_set_num_threads(nthreads)
             self._index.hnsw.efSearch = 64  # recall@1 0.998 at k = 100,000 (BENCHMARKS.md)
-        elif self.method == "kdtree":
+        else:  # kdtree
             import cv2
 
             self._index = cv2.flann_Index(self.centroids, {"algorithm": 1, "trees": 4})
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the faiss structure (flat or HNSW: the built graph, so every reader assigns the
+        same words without rebuilding it; 52 s at K = 100,000) atomically to ``path``."""
+        if self.method == "kdtree":
+            raise ValueError("the kd-tree quantizer is not saved (OpenCV FLANN is not portable)")
+        import faiss
+
+        with atomic_path(path) as tmp:
+            faiss.write_index(self._index, str(tmp))
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, centroids: np.ndarray) -> WordQuantizer:
+        """A quantizer saved by ``save`` for ``centroids`` (checked: same number of words and
+        dimension; a flat index also the same vectors)."""
+        import faiss
+
+        try:
+            index = faiss.read_index(str(path))
+        except RuntimeError as exc:
+            raise InputError(path, f"cannot read: {exc}", "rerun rule word_quantizer") from exc
+        cent = np.ascontiguousarray(centroids, np.float32)
+        if index.ntotal != cent.shape[0] or index.d != cent.shape[1]:
+            raise InputError(
+                path,
+                f"{index.ntotal} words of dim {index.d}, the vocabulary has {cent.shape}",
+                "rerun rule word_quantizer",
+            )
+        if isinstance(index, faiss.IndexHNSWFlat):
+            method = "hnsw"
+            index.hnsw.efSearch = 64
+        elif isinstance(index, faiss.IndexFlatL2):
+            method = "flat"
         else:
-            raise ValueError(f"unknown quantizer method {method!r}")
+            raise InputError(path, f"unexpected faiss index {type(index).__name__}")
+        return cls(cent, method, _index=index)
+
+    def words(self, desc: np.ndarray) -> np.ndarray:
+        """The nearest word of each descriptor, int32 (n,): what ``MapIndex.build`` stores."""
+        return self.search(desc, 1)[1][:, 0].astype(np.int32)
 
     def search(self, desc: np.ndarray, k: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """(dist, word) arrays (n, k): Euclidean (not squared) distances, int64 word ids."""
@@ -205,18 +254,26 @@ class MapIndex:
         centroids: np.ndarray,
         out_dir: str | os.PathLike,
         crs_wkt: str | None = None,
-        quantizer: str = "auto",
+        quantizer: str | WordQuantizer = "auto",
         extra_meta: dict[str, Any] | None = None,
+        words: Sequence[str | os.PathLike] | None = None,
     ) -> MapIndex:
         """Concatenate per-tile features, assign words, build the inverted files; write
         ``out_dir`` atomically (a temporary sibling renamed at the end) and return it loaded.
 
-        Memory: O(K + T + word-tile pairs) plus one tile at a time; the per-feature arrays are
-        written through memory maps.
+        ``words``: one word file per tile (rule ``tile_words``, ``tile_word_file``), same order
+        as ``feature_dirs``; they replace the in-process assignment (``WordQuantizer.words``,
+        the same function, so the index is identical). ``quantizer`` then only names the method
+        recorded in ``meta.json``.
+
+        Memory: O(K + T) plus one tile (or one chunk) at a time: the per-feature arrays, the
+        (word, tile) pairs and the word x tile matrix all go through memory maps.
         """
         t0 = time.perf_counter()
         if len(feature_dirs) != len(tile_ids):
             raise ValueError("feature_dirs and tile_ids differ in length")
+        if words is not None and len(words) != len(feature_dirs):
+            raise ValueError("words and feature_dirs differ in length")
         out = Path(out_dir)
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
@@ -240,7 +297,20 @@ class MapIndex:
             nt = len(tile_ids)
             cent = np.ascontiguousarray(centroids, np.float32)
             k = cent.shape[0]
-            q = WordQuantizer(cent, quantizer)
+            if words is not None:
+                q = None
+                method = (
+                    quantizer.method
+                    if isinstance(quantizer, WordQuantizer)
+                    else quantizer_method(k, quantizer)
+                )
+            else:
+                q = (
+                    quantizer
+                    if isinstance(quantizer, WordQuantizer)
+                    else WordQuantizer(cent, quantizer)
+                )
+                method = q.method
 
             def mm(name: str, dtype: Any, shape: tuple[int, ...]) -> np.ndarray:
                 return np.lib.format.open_memmap(tmp / f"{name}.npy", "w+", dtype, shape)
@@ -260,9 +330,19 @@ class MapIndex:
             tile_offsets[1:] = np.cumsum(counts)
             tile_bounds = np.full((nt, 4), np.nan, np.float64)
             word_count = np.zeros(k, np.int64)
-            wt_w, wt_t, wt_c = [], [], []
+            df = np.zeros(k, np.int64)
+            # (word, tile, count) pairs in tile order, through memory maps (M <= N pairs)
+            pairs = {
+                name: np.lib.format.open_memmap(
+                    tmp / f"_pairs_{name}.npy", "w+", np.int32, (max(n, 1),)
+                )
+                for name in ("word", "tile", "count")
+            }
+            n_pairs = 0
             for t, d in enumerate(feature_dirs):
                 lo, hi = int(tile_offsets[t]), int(tile_offsets[t + 1])
+                if words is not None:
+                    w = load_tile_words(words[t], hi - lo, k)
                 if hi == lo:
                     continue
                 for name in _PER_FEATURE:
@@ -271,16 +351,18 @@ class MapIndex:
                         src = np.clip(np.rint(np.asarray(src) * DESC_SCALE), 0, 255)
                     arr[name][lo:hi] = src
                 arr["tile"][lo:hi] = t
-                _, w = q.search(arr["desc"][lo:hi], 1)
-                w = w[:, 0].astype(np.int32)
+                if words is None:
+                    w = q.words(arr["desc"][lo:hi])
                 arr["word"][lo:hi] = w
                 xy = arr["xy"][lo:hi]
                 tile_bounds[t] = [xy[:, 0].min(), xy[:, 1].min(), xy[:, 0].max(), xy[:, 1].max()]
                 uw, uc = np.unique(w, return_counts=True)
                 word_count[uw] += uc
-                wt_w.append(uw.astype(np.int32))
-                wt_t.append(np.full(len(uw), t, np.int32))
-                wt_c.append(uc.astype(np.int32))
+                df[uw] += 1
+                pairs["word"][n_pairs : n_pairs + len(uw)] = uw
+                pairs["tile"][n_pairs : n_pairs + len(uw)] = t
+                pairs["count"][n_pairs : n_pairs + len(uw)] = uc
+                n_pairs += len(uw)
             # inverted file word -> feature ids (counting sort, chunked, bounded memory)
             ivf_offsets = np.zeros(k + 1, np.int64)
             ivf_offsets[1:] = np.cumsum(word_count)
@@ -295,20 +377,37 @@ class MapIndex:
                 rank = np.arange(len(ws)) - first[ws]
                 ivf_ids[cursor[ws] + rank] = i + order
                 cursor += cnt
-            # word x tile counts (CSR by word), document frequency, idf, tile norms
-            ww = np.concatenate(wt_w) if wt_w else np.zeros(0, np.int32)
-            tt = np.concatenate(wt_t) if wt_t else np.zeros(0, np.int32)
-            cc = np.concatenate(wt_c) if wt_c else np.zeros(0, np.int32)
-            order = np.argsort(ww, kind="stable")
-            ww, tt, cc = ww[order], tt[order], cc[order]
-            df = np.bincount(ww, minlength=k).astype(np.int32)
+            # word x tile counts (CSR by word: a stable counting sort of the tile-ordered pairs,
+            # chunked), document frequency, idf, tile norms
+            df = df.astype(np.int32)
             wt_offsets = np.zeros(k + 1, np.int64)
             wt_offsets[1:] = np.cumsum(df)
             idf = np.where(df > 0, np.log(max(nt, 1) / np.maximum(df, 1)), 0.0).astype(np.float32)
-            tile_norm = np.sqrt(
-                # sqrt-tf: |d|^2 = sum_w (sqrt(n_tw) idf_w)^2 = sum_w n_tw idf_w^2
-                np.bincount(tt, weights=cc * idf[ww].astype(np.float64) ** 2, minlength=nt)
-            ).astype(np.float32)
+            wt_tile = mm("wt_tile", np.int32, (n_pairs,))
+            wt_count = mm("wt_count", np.int32, (n_pairs,))
+            cursor = wt_offsets[:-1].copy()
+            for i in range(0, n_pairs, 4 * _CHUNK):
+                w = np.asarray(pairs["word"][i : min(i + 4 * _CHUNK, n_pairs)], np.int64)
+                order = np.argsort(w, kind="stable")
+                ws = w[order]
+                cnt = np.bincount(ws, minlength=k)
+                first = np.cumsum(cnt) - cnt
+                dst = cursor[ws] + np.arange(len(ws)) - first[ws]
+                wt_tile[dst] = pairs["tile"][i : i + len(w)][order]
+                wt_count[dst] = pairs["count"][i : i + len(w)][order]
+                cursor += cnt
+            del pairs
+            for name in ("word", "tile", "count"):
+                (tmp / f"_pairs_{name}.npy").unlink()
+            # sqrt-tf: |d|^2 = sum_w (sqrt(n_tw) idf_w)^2 = sum_w n_tw idf_w^2, summed in CSR
+            # order one term at a time (np.add.at), as one bincount over the whole matrix would
+            norm2 = np.zeros(nt, np.float64)
+            for i in range(0, n_pairs, 4 * _CHUNK):
+                j = min(i + 4 * _CHUNK, n_pairs)
+                ww = np.searchsorted(wt_offsets, np.arange(i, j), side="right") - 1
+                cc = np.asarray(wt_count[i:j])
+                np.add.at(norm2, np.asarray(wt_tile[i:j]), cc * idf[ww].astype(np.float64) ** 2)
+            tile_norm = np.sqrt(norm2).astype(np.float32)
             small = {
                 "tile_offsets": tile_offsets,
                 "tile_bounds": tile_bounds,
@@ -317,15 +416,13 @@ class MapIndex:
                 "df": df,
                 "idf": idf,
                 "wt_offsets": wt_offsets,
-                "wt_tile": tt,
-                "wt_count": cc,
                 "tile_norm": tile_norm,
             }
             for name, a in small.items():
                 np.save(tmp / f"{name}.npy", a)
-            for a in (*arr.values(), ivf_ids):
+            for a in (*arr.values(), ivf_ids, wt_tile, wt_count):
                 a.flush()
-            del arr, ivf_ids
+            del arr, ivf_ids, wt_tile, wt_count
             first_meta = metas[0] if metas else {}
             meta = {
                 "format_version": FORMAT_VERSION,
@@ -339,7 +436,7 @@ class MapIndex:
                 "features_conf_hash": first_meta.get("features_conf_hash"),
                 "desc_dtype": "uint8",
                 "desc_scale": DESC_SCALE,
-                "word_assignment": q.method,
+                "word_assignment": method,
                 "tf": "sqrt",
                 "xy_convention": "map CRS x, y of the keypoint (pixel-centre convention)",
                 "build_seconds": round(time.perf_counter() - t0, 3),
@@ -547,19 +644,101 @@ class MapIndex:
         return {name: np.asarray(getattr(self, name)[ids]) for name in names}
 
 
+def load_tile_words(path: str | os.PathLike, n: int, n_words: int) -> np.ndarray:
+    """A tile's word file (rule ``tile_words``), checked: int32, ``n`` entries in [0, n_words)."""
+    try:
+        w = np.load(path)
+    except (OSError, ValueError) as exc:
+        raise InputError(path, f"cannot read: {exc}", "rerun rule tile_words") from exc
+    if w.dtype != np.int32 or w.shape != (n,):
+        raise InputError(
+            path,
+            f"{w.dtype} {w.shape}, expected int32 ({n},) for the tile's features",
+            "rerun rule tile_words",
+        )
+    if n and (int(w.min()) < 0 or int(w.max()) >= n_words):
+        raise InputError(path, f"word ids outside [0, {n_words})", "rerun rule tile_words")
+    return w
+
+
+def save_word_quantizer(
+    centroids_path: str | os.PathLike, out_path: str | os.PathLike, method: str = "auto"
+) -> str:
+    """Rule ``word_quantizer``: build the nearest-word structure of the vocabulary once (the
+    HNSW graph at K > 16,384 takes ~1 min) and save it for every ``tile_words`` job."""
+    try:
+        cent = np.load(centroids_path)
+    except (OSError, ValueError) as exc:
+        raise InputError(centroids_path, f"cannot read: {exc}", "rerun rule vocabulary") from exc
+    t0 = time.perf_counter()
+    q = WordQuantizer(cent, method)
+    q.save(out_path)
+    log.info(
+        "word quantizer: %s over %d words in %.1f s", q.method, len(cent), time.perf_counter() - t0
+    )
+    return q.method
+
+
+def assign_tile_words(
+    feature_dir: str | os.PathLike,
+    centroids_path: str | os.PathLike,
+    out_path: str | os.PathLike,
+    quantizer_path: str | os.PathLike | None = None,
+) -> np.ndarray:
+    """Rule ``tile_words``: the nearest visual word (int32) of every feature of one tile,
+    written atomically as ``out_path`` (.npy). Uses the saved quantizer when given (else builds
+    it from the centroids): the same ``WordQuantizer.words`` as ``MapIndex.build``."""
+    d = Path(feature_dir)
+    try:
+        cent = np.load(centroids_path)
+        desc = np.load(d / "desc.npy", mmap_mode="r")
+    except (OSError, ValueError) as exc:
+        raise InputError(d, f"cannot read: {exc}", "rerun rule tile_features") from exc
+    if desc.dtype != np.uint8:  # as MapIndex.build stores it
+        desc = np.clip(np.rint(np.asarray(desc) * DESC_SCALE), 0, 255).astype(np.uint8)
+    t0 = time.perf_counter()
+    q = (
+        WordQuantizer.load(quantizer_path, cent)
+        if quantizer_path is not None
+        else WordQuantizer(cent)
+    )
+    t1 = time.perf_counter()
+    w = q.words(desc) if len(desc) else np.zeros(0, np.int32)
+    with atomic_path(out_path) as tmp:
+        np.save(tmp, w)
+    log.info(
+        "%s: %d features -> words (%s, %d words): quantizer %.2f s, assignment %.2f s",
+        d.name, len(w), q.method, len(cent), t1 - t0, time.perf_counter() - t1,
+    )  # fmt: skip
+    return w
+
+
 def build_from_grid(
     grid_path: str | os.PathLike,
     feature_dirs: Sequence[str | os.PathLike],
     centroids_path: str | os.PathLike,
     out_dir: str | os.PathLike,
+    word_files: Sequence[str | os.PathLike] | None = None,
 ) -> MapIndex:
-    """Rule ``build_index``: tile ids from the feature dirs' names, CRS from grid.json."""
+    """Rule ``build_index``: tile ids from the feature dirs' names, CRS from grid.json; words
+    from ``word_files`` (``<tile>.npy``, matched to the feature dirs by name) when given."""
     try:
         grid = json.loads(Path(grid_path).read_text())
         cent = np.load(centroids_path)
     except (OSError, ValueError) as exc:
         raise InputError(grid_path, f"cannot read build inputs: {exc}") from exc
     dirs = sorted((Path(d) for d in feature_dirs), key=lambda p: p.name)
+    words = None
+    if word_files is not None:
+        by_tile = {Path(f).stem: Path(f) for f in word_files}
+        missing = [d.name for d in dirs if d.name not in by_tile]
+        if missing or len(by_tile) != len(dirs):
+            raise InputError(
+                None,
+                f"word files do not match the feature tiles (missing: {missing[:5]})",
+                "rerun rule tile_words",
+            )
+        words = [by_tile[d.name] for d in dirs]
     vocab_meta = Path(centroids_path).with_name("meta.json")
     extra = {"vocabulary": json.loads(vocab_meta.read_text()) if vocab_meta.exists() else None}
     return MapIndex.build(
@@ -569,4 +748,5 @@ def build_from_grid(
         out_dir,
         crs_wkt=grid.get("crs"),
         extra_meta=extra,
+        words=words,
     )

@@ -1,4 +1,4 @@
-"""Rule build_index: concatenate tile features, assign visual words, write the inverted files."""
+"""Rule build_index: concatenate tile features and their words, write the inverted files."""
 
 from pathlib import Path
 
@@ -8,7 +8,8 @@ from georeg.scripting import run
 
 def main(smk):
     out_dir = Path(smk.output.meta).parent
-    build_from_grid(smk.input.grid, smk.input.features, smk.input.centroids, out_dir)
+    i = smk.input
+    build_from_grid(i.grid, i.features, i.centroids, out_dir, word_files=i.words)
 
 
 run(snakemake, main)  # noqa: F821

@@ -92,7 +92,10 @@ def test_changed_matching_parameter_reruns_registration_only(demo_run, tmp_path)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out[-2000:]
     assert "search_part" in out
-    for rule in ("demo_scene", "map_tile_ortho", "tile_features", "vocabulary", "build_index"):
+    for rule in (
+        "demo_scene", "map_tile_ortho", "tile_features", "vocabulary", "word_quantizer",
+        "tile_words", "build_index",
+    ):  # fmt: skip
         assert f"rule {rule}:" not in out and f"\n{rule} " not in out, rule
 
 

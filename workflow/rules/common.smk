@@ -10,16 +10,20 @@ from pathlib import Path
 from snakemake.utils import validate
 
 
+DATA_SECTIONS = ("map", "queries", "frames")
+
+
 def _replace_user_sections(config):
-    """A user's --configfile/--config `map`, `queries`, `frames` replace the defaults wholesale.
+    """A user's data sections (`map`, `queries`, `frames`) replace the demo's wholesale.
 
     Snakemake deep-merges command-line config into the Snakefile's `configfile:` default, so a
-    user's file would otherwise inherit the demo's LiDAR list and the demo queries.
+    user's file would otherwise inherit the demo's LiDAR list, queries and frames. Once the user
+    gives any data section, the ones they leave out are empty rather than the demo's.
     """
     user = workflow.config_settings.overwrite_config or {}
-    for key in ("map", "queries", "frames"):
-        if key in user:
-            config[key] = copy.deepcopy(user[key])
+    if any(key in user for key in DATA_SECTIONS):
+        for key in DATA_SECTIONS:
+            config[key] = copy.deepcopy(user.get(key, {}))
 
 
 _replace_user_sections(config)
@@ -31,6 +35,8 @@ QUERIES = sorted(config["queries"])
 def query_name_pattern():
     """Wildcard constraint for {name}: exactly the configured queries (nothing else matches)."""
     return "|".join(re.escape(q) for q in QUERIES) or "(?!)"
+
+
 TARGETS = []  # each stage file appends its final outputs (paths or input functions)
 
 
@@ -121,6 +127,11 @@ def index_tile_ids():
 
 def index_feature_dirs(wildcards):
     return expand("results/index/features/{tile}", tile=index_tile_ids())
+
+
+
+def index_word_files(wildcards):
+    return expand("results/index/words/{tile}.npy", tile=index_tile_ids())
 
 
 

@@ -1,4 +1,5 @@
-# Feature index (issue 4): SIFT features per map tile -> k-means visual words -> the map index.
+# Feature index (issue 4): SIFT features per map tile -> k-means visual words -> nearest word of
+# every feature, per tile (parallel over tiles) -> the map index (a merge).
 # Params hold only the `features:` / `vocabulary:` sections, so changing the matching settings
 # (`register:`) reruns nothing here, while changing detector settings re-extracts every tile.
 
@@ -50,11 +51,44 @@ rule vocabulary:
         "../../scripts/index_vocabulary.py"
 
 
+rule word_quantizer:
+    input:
+        centroids="results/index/vocabulary/centroids.npy",
+    output:
+        "results/index/vocabulary/quantizer.faiss",
+    log:
+        "logs/index/word_quantizer.log",
+    threads: 1
+    resources:
+        mem_mb=2000,
+    script:
+        "../../scripts/index_word_quantizer.py"
+
+
+rule tile_words:
+    input:
+        features="results/index/features/{tile}",
+        centroids="results/index/vocabulary/centroids.npy",
+        quantizer="results/index/vocabulary/quantizer.faiss",
+    output:
+        "results/index/words/{tile}.npy",
+    wildcard_constraints:
+        tile=r"r\d+_c\d+",
+    log:
+        "logs/index/tile_words/{tile}.log",
+    threads: 1
+    resources:
+        mem_mb=1000,
+    script:
+        "../../scripts/index_tile_words.py"
+
+
 rule build_index:
     input:
         grid="results/map/grid.json",
         centroids="results/index/vocabulary/centroids.npy",
         features=index_feature_dirs,
+        words=index_word_files,
     output:
         meta=f"{INDEX_DIR}/meta.json",
         arrays=expand(f"{INDEX_DIR}/{{name}}.npy", name=INDEX_ARRAYS),

@@ -1,0 +1,11 @@
+"""Rule word_quantizer: the vocabulary's nearest-word structure (flat or HNSW), built once."""
+
+from georeg.index import save_word_quantizer
+from georeg.scripting import run
+
+
+def main(smk):
+    save_word_quantizer(smk.input.centroids, smk.output[0])
+
+
+run(snakemake, main)  # noqa: F821
