@@ -49,23 +49,16 @@ import rasterio
 from rasterio.windows import Window
 
 from georeg.atomic import atomic_path, write_json
-from georeg.demo import classes as C
-from georeg.demo import spectra as S
 from georeg.demo.layout import (
     BLOCK_TYPES,
-    KIND_SURFACE,
     SIDEWALK_M,
     Layout,
     Streets,
     Terrain,
-    _block_downtown,
-    _block_lowrise,
-    _block_park,
-    _block_residential,
     _Builder,
-    _cars_in_lot,
     _street_intervals,
-    _trees_in,
+    drop_on_avenue,
+    populate_block,
 )
 from georeg.demo.lidar import simulate_tile, write_laz
 from georeg.demo.pushbroom import Flight, render_query
@@ -278,45 +271,12 @@ def local_layout(spec: LargeMapSpec, frame: WorldFrame, box) -> Layout:
                      for ux, uy, r, s in centres), default=0.0)  # fmt: skip
             t = 0 if rng.random() < 0.9 * u else 1 + int(rng.choice(6, p=OTHERS / OTHERS.sum()))
             btype[jj, ii] = t
-            name = BLOCK_TYPES[t]
             bid = (gj * n_gx + gi) * 1000  # globally unique building ids per block
-            if name == "downtown":
-                blabel[jj, ii], bmat[jj, ii], bc2[jj, ii] = (
-                    C.CONCRETE,
-                    S.CONCRETE,
-                    bc2[jj, ii] * 0.4,
-                )
-                _block_downtown(b, rng, bx, u, frame.terrain, bid)
-            elif name == "residential":
-                blabel[jj, ii], bmat[jj, ii], bc2[jj, ii] = C.GRASS, S.GRASS, bc2[jj, ii] * 0.6
-                _block_residential(b, rng, bx, frame.terrain, bid)
-            elif name in ("commercial", "industrial"):
-                blabel[jj, ii], bmat[jj, ii] = C.PARKING, S.ASPHALT
-                _block_lowrise(b, rng, bx, frame.terrain, bid, name == "industrial")
-            elif name == "park":
-                blabel[jj, ii], bmat[jj, ii], bc2[jj, ii] = C.GRASS, S.GRASS, bc2[jj, ii] * 0.3
-                _block_park(b, rng, bx)
-            elif name == "parking":
-                blabel[jj, ii], bmat[jj, ii] = C.PARKING, S.ASPHALT
-                _cars_in_lot(b, rng, (bx[0] + 1, bx[1] + 1, bx[2] - 1, bx[3] - 1),
-                             rng.uniform(0.3, 0.95), rng.uniform(0.3, 0.95))  # fmt: skip
-                _trees_in(b, rng, bx, rng.poisson(4), 2.0, 3.5, 5, 9)
-            else:  # vacant
-                blabel[jj, ii], bmat[jj, ii] = C.BARE_SOIL, S.SOIL
-                _trees_in(b, rng, bx, rng.poisson((bx[2] - bx[0]) * (bx[3] - bx[1]) / 1500),
-                          1.5, 3.0, 5, 7)  # fmt: skip
-                if rng.random() < 0.5:
-                    b.rect((bx[0], bx[1], 0.5 * (bx[0] + bx[2]), bx[3]), layer=1, label=C.GRASS,
-                           mat=S.GRASS, c1=rng.normal(0, 0.1), c2=rng.uniform(0.6, 1.0))  # fmt: skip
-    rects, trees = b.arrays()
-    half = streets.diag_width / 2 + SIDEWALK_M
-    cx, cy = 0.5 * (rects["x0"] + rects["x1"]), 0.5 * (rects["y0"] + rects["y1"])
-    rad = 0.5 * np.hypot(rects["x1"] - rects["x0"], rects["y1"] - rects["y0"])
-    keep = np.abs(streets.diag_distance(cx, cy)) > half + rad
-    keep |= (rects["kind"] == KIND_SURFACE) & (rad > 25)
-    rects = {k: v[keep] for k, v in rects.items()}
-    keep_t = np.abs(streets.diag_distance(trees["cx"], trees["cy"])) > half + trees["r"]
-    trees = {k: v[keep_t] for k, v in trees.items()}
+            blabel[jj, ii], bmat[jj, ii], c2_scale, _ = populate_block(
+                b, rng, bx, BLOCK_TYPES[t], u, frame.terrain, bid
+            )
+            bc2[jj, ii] *= c2_scale
+    rects, trees = drop_on_avenue(streets, *b.arrays())
     return Layout(tuple(box), frame.terrain, streets, btype, blabel, bmat, bc1, bc2, rects, trees,
                   [(c[0], c[1]) for c in centres])  # fmt: skip
 

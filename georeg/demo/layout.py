@@ -478,6 +478,45 @@ def _block_park(b, rng, box):
         )
 
 
+def populate_block(b: _Builder, rng: np.random.Generator, box, name: str, u: float,
+                   terrain: Terrain, bid: int) -> tuple[int, int, float, int]:  # fmt: skip
+    """Fill one city block of type ``name``; returns (ground label, material, c2 scale, next id)."""
+    if name == "downtown":
+        return C.CONCRETE, S.CONCRETE, 0.4, _block_downtown(b, rng, box, u, terrain, bid)
+    if name == "residential":
+        return C.GRASS, S.GRASS, 0.6, _block_residential(b, rng, box, terrain, bid)
+    if name in ("commercial", "industrial"):
+        return C.PARKING, S.ASPHALT, 1.0, _block_lowrise(b, rng, box, terrain, bid,
+                                                         name == "industrial")  # fmt: skip
+    if name == "park":
+        _block_park(b, rng, box)
+        return C.GRASS, S.GRASS, 0.3, bid
+    if name == "parking":
+        _cars_in_lot(b, rng, (box[0] + 1, box[1] + 1, box[2] - 1, box[3] - 1),
+                     rng.uniform(0.3, 0.95), rng.uniform(0.3, 0.95))  # fmt: skip
+        _trees_in(b, rng, box, rng.poisson(4), 2.0, 3.5, 5, 9)
+        return C.PARKING, S.ASPHALT, 1.0, bid
+    # vacant
+    _trees_in(b, rng, box, rng.poisson((box[2] - box[0]) * (box[3] - box[1]) / 1500),
+              1.5, 3.0, 5, 7)  # fmt: skip
+    if rng.random() < 0.5:
+        b.rect((box[0], box[1], 0.5 * (box[0] + box[2]), box[3]), layer=1, label=C.GRASS,
+               mat=S.GRASS, c1=rng.normal(0, 0.1), c2=rng.uniform(0.6, 1.0))  # fmt: skip
+    return C.BARE_SOIL, S.SOIL, 1.0, bid
+
+
+def drop_on_avenue(streets: Streets, rects: dict[str, np.ndarray],
+                   trees: dict[str, np.ndarray]) -> tuple[dict, dict]:  # fmt: skip
+    """The diagonal avenue cuts through blocks: drop what lies on it (large lots may stay)."""
+    half = streets.diag_width / 2 + SIDEWALK_M
+    cx, cy = 0.5 * (rects["x0"] + rects["x1"]), 0.5 * (rects["y0"] + rects["y1"])
+    rad = 0.5 * np.hypot(rects["x1"] - rects["x0"], rects["y1"] - rects["y0"])
+    keep = np.abs(streets.diag_distance(cx, cy)) > half + rad
+    keep |= (rects["kind"] == KIND_SURFACE) & (rad > 25)
+    keep_t = np.abs(streets.diag_distance(trees["cx"], trees["cy"])) > half + trees["r"]
+    return {k: v[keep] for k, v in rects.items()}, {k: v[keep_t] for k, v in trees.items()}
+
+
 def make_layout(rng: np.random.Generator, extent: tuple[float, float, float, float],
                 map_centre: tuple[float, float], map_size: float) -> Layout:  # fmt: skip
     """Generate the city over ``extent`` (xmin, ymin, xmax, ymax), downtown near ``map_centre``."""
@@ -530,54 +569,11 @@ def make_layout(rng: np.random.Generator, extent: tuple[float, float, float, flo
             )
             t = 0 if rng.random() < 0.9 * u else 1 + int(rng.choice(6, p=others / others.sum()))
             btype[j, i] = t
-            name = BLOCK_TYPES[t]
-            if name == "downtown":
-                blabel[j, i], bmat[j, i], bc2[j, i] = C.CONCRETE, S.CONCRETE, bc2[j, i] * 0.4
-                bid = _block_downtown(b, rng, box, u, terrain, bid)
-            elif name == "residential":
-                blabel[j, i], bmat[j, i], bc2[j, i] = C.GRASS, S.GRASS, bc2[j, i] * 0.6
-                bid = _block_residential(b, rng, box, terrain, bid)
-            elif name in ("commercial", "industrial"):
-                blabel[j, i], bmat[j, i] = C.PARKING, S.ASPHALT
-                bid = _block_lowrise(b, rng, box, terrain, bid, name == "industrial")
-            elif name == "park":
-                blabel[j, i], bmat[j, i], bc2[j, i] = C.GRASS, S.GRASS, bc2[j, i] * 0.3
-                _block_park(b, rng, box)
-            elif name == "parking":
-                blabel[j, i], bmat[j, i] = C.PARKING, S.ASPHALT
-                _cars_in_lot(
-                    b,
-                    rng,
-                    (box[0] + 1, box[1] + 1, box[2] - 1, box[3] - 1),
-                    rng.uniform(0.3, 0.95),
-                    rng.uniform(0.3, 0.95),
-                )
-                _trees_in(b, rng, box, rng.poisson(4), 2.0, 3.5, 5, 9)
-            else:  # vacant
-                blabel[j, i], bmat[j, i] = C.BARE_SOIL, S.SOIL
-                _trees_in(
-                    b,
-                    rng,
-                    box,
-                    rng.poisson((box[2] - box[0]) * (box[3] - box[1]) / 1500),
-                    1.5,
-                    3.0,
-                    5,
-                    7,
-                )
-                if rng.random() < 0.5:
-                    b.rect((box[0], box[1], 0.5 * (box[0] + box[2]), box[3]), layer=1, label=C.GRASS,
-                           mat=S.GRASS, c1=rng.normal(0, 0.1), c2=rng.uniform(0.6, 1.0))  # fmt: skip
-    rects, trees = b.arrays()
-    # the diagonal avenue cuts through blocks: drop what lies on it
-    half = streets.diag_width / 2 + SIDEWALK_M
-    cx, cy = 0.5 * (rects["x0"] + rects["x1"]), 0.5 * (rects["y0"] + rects["y1"])
-    rad = 0.5 * np.hypot(rects["x1"] - rects["x0"], rects["y1"] - rects["y0"])
-    keep = np.abs(streets.diag_distance(cx, cy)) > half + rad
-    bigsurf = (rects["kind"] == KIND_SURFACE) & (rad > 25)  # large lots may stay under the avenue
-    rects = {k: v[keep | bigsurf] for k, v in rects.items()}
-    keep_t = np.abs(streets.diag_distance(trees["cx"], trees["cy"])) > half + trees["r"]
-    trees = {k: v[keep_t] for k, v in trees.items()}
+            blabel[j, i], bmat[j, i], c2_scale, bid = populate_block(
+                b, rng, box, BLOCK_TYPES[t], u, terrain, bid
+            )
+            bc2[j, i] *= c2_scale
+    rects, trees = drop_on_avenue(streets, *b.arrays())
     return Layout(extent, terrain, streets, btype, blabel, bmat, bc1, bc2, rects, trees,
                   [(c[0], c[1]) for c in centres])  # fmt: skip
 
