@@ -136,11 +136,18 @@ def _rot_err(Ra, Rb) -> float:
 def localize_frame(
     path: str, camera: dict | None, maps: MapSources, conf: dict
 ) -> tuple[dict, Any]:
-    """Pose of one frame; returns (pose record, (undistorted rgb, final Render or None))."""
+    """Pose of one frame file; returns (pose record, (undistorted rgb, final Render or None))."""
+    return localize_image(read_frame(path), str(path), camera, maps, conf)
+
+
+def localize_image(
+    rgb: np.ndarray, path: str, camera: dict | None, maps: MapSources, conf: dict
+) -> tuple[dict, Any]:
+    """Pose of one RGB frame named ``path`` (a file name, or ``video#index``); see
+    ``localize_frame``."""
     c = {**DEFAULTS, **(conf or {})}
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
-    rgb = read_frame(path)
     h, w = rgb.shape[:2]
     rec: dict[str, Any] = {"image": str(path), "status": "not_found"}
     if camera:
