@@ -25,7 +25,13 @@ from georeg.demo.layout import EPOCH_QUERY, make_layout
 from georeg.demo.raster import Grid, Texture, rasterize
 from georeg.demo.render import render_orthophoto
 from georeg.demo.scene import LAYOUT_PAD_M, ORIGIN, RNG_STREAMS, place_inside, place_outside
-from georeg.render_points import PinholeCamera, heightfield_cloud, pose_from_angles, render
+from georeg.render_points import (
+    PinholeCamera,
+    PointCloud,
+    heightfield_cloud,
+    pose_from_angles,
+    render,
+)
 
 log = logging.getLogger(__name__)
 
@@ -159,17 +165,20 @@ def _facade(rgb_roof: np.ndarray, z: np.ndarray, base: np.ndarray) -> np.ndarray
     return np.clip(0.75 * col + 0.25 * rgb_roof, 0, 255).astype(np.uint8)
 
 
-def render_frame(world: World, cam: PinholeCamera, dist: list[float], rng: np.random.Generator,
-                 max_cells: int = 5_000_000) -> np.ndarray:  # fmt: skip
-    """The distorted, re-toned, noisy RGB frame (H, W, 3) uint8 seen by ``cam``."""
-    zg = world.ground(*cam.C[:2])
-    fp = ground_footprint(cam, zg)
-    pad = 60.0
-    x0, y0 = fp[:, 0].min() - pad, fp[:, 1].min() - pad
-    x1, y1 = fp[:, 0].max() + pad, fp[:, 1].max() + pad
-    near = float(np.min(np.linalg.norm(np.c_[fp, np.full(len(fp), zg)] - cam.C, axis=1)))
+def frame_resolution(cam: PinholeCamera, bounds: tuple[float, float, float, float], zg: float,
+                     near: float, max_cells: int) -> float:  # fmt: skip
+    """Raster cell (m) of a cloud for ``cam``: ~0.6 of the ground pixel at the nearest ground point,
+    0.2-1 m, coarser if ``bounds`` would exceed ``max_cells`` cells."""
+    x0, y0, x1, y1 = bounds
     res = float(np.clip(0.6 * min(cam.C[2] - zg, near) / cam.fx, 0.2, 1.0))
-    res = max(res, float(np.sqrt((x1 - x0) * (y1 - y0) / max_cells)))
+    return max(res, float(np.sqrt((x1 - x0) * (y1 - y0) / max_cells)))
+
+
+def corridor_cloud(world: World, bounds: tuple[float, float, float, float], res: float,
+                   rng: np.random.Generator) -> PointCloud:  # fmt: skip
+    """The query-epoch city in ``bounds`` (x0, y0, x1, y1) as a height-field cloud of ``res`` m
+    cells lit by ``FRAME_SUN``, with storeyed facades (one ``rng`` draw: the surface noise)."""
+    x0, y0, x1, y1 = bounds
     grid = Grid(x0, y1, res, int((x1 - x0) / res), int((y1 - y0) / res))
     surf = rasterize(world.layout, grid, EPOCH_QUERY, world.texture)
     rgb = render_orthophoto(surf, FRAME_SUN, rng).transpose(1, 2, 0)
@@ -179,33 +188,69 @@ def render_frame(world: World, cam: PinholeCamera, dist: list[float], rng: np.ra
     walls = slice(n_surf, None)
     base = world.layout.terrain(cloud.xyz[walls, 0], cloud.xyz[walls, 1])
     cloud.rgb[walls] = _facade(cloud.rgb[walls].astype(np.float32), cloud.xyz[walls, 2], base)
-    # ideal pinhole render on a larger canvas, then the lens distortion by remapping
-    m = 0.12
-    big = PinholeCamera(cam.fx, cam.fy, cam.cx + m * cam.width, cam.cy + m * cam.height,
-                        int(cam.width * (1 + 2 * m)), int(cam.height * (1 + 2 * m)), cam.R, cam.C)  # fmt: skip
-    ideal = render(cloud, big).image
+    return cloud
+
+
+class Lens:
+    """What one camera's intrinsics do to every frame: the radial-tangential distortion (a remap
+    from a pinhole canvas ``margin`` x the image size larger on each side; None: just what the
+    distortion needs, + 3 px) and the vignetting."""
+
+    def __init__(self, cam: PinholeCamera, dist: list[float], margin: float | None = 0.12) -> None:
+        self.size = (cam.width, cam.height)
+        uu, vv = np.meshgrid(
+            np.arange(cam.width, dtype=np.float64), np.arange(cam.height, dtype=np.float64)
+        )
+        pts = np.c_[uu.ravel(), vv.ravel()].reshape(-1, 1, 2)
+        und = cv2.undistortPoints(pts, cam.K, np.asarray(dist, float), R=None, P=cam.K,
+                                  criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-6)).reshape(-1, 2)  # fmt: skip
+        if margin is None:
+            over = np.r_[-und.min(0), und.max(0) - [cam.width - 1, cam.height - 1]] + 3
+            margin = float(max(0.0, *(over / [cam.width, cam.height, cam.width, cam.height])))
+        self.margin = m = margin
+        self.mx = (und[:, 0] + m * cam.width).reshape(cam.height, cam.width).astype(np.float32)
+        self.my = (und[:, 1] + m * cam.height).reshape(cam.height, cam.width).astype(np.float32)
+        r2 = ((uu - cam.cx) ** 2 + (vv - cam.cy) ** 2) / (cam.width**2 / 4 + cam.height**2 / 4)
+        self.vignette = (1.0 - 0.25 * r2)[..., None].astype(np.float32)
+
+    def canvas(self, cam: PinholeCamera) -> PinholeCamera:
+        """The ideal pinhole rendered before distortion: same pose and focal, larger image."""
+        m = self.margin
+        return PinholeCamera(cam.fx, cam.fy, cam.cx + m * cam.width, cam.cy + m * cam.height,
+                             int(cam.width * (1 + 2 * m)), int(cam.height * (1 + 2 * m)), cam.R, cam.C)  # fmt: skip
+
+
+def camera_image(cloud: PointCloud, cam: PinholeCamera, lens: Lens,
+                 rng: np.random.Generator) -> np.ndarray:  # fmt: skip
+    """``cloud`` seen by ``cam`` through ``lens``, with another camera response: white balance,
+    tone curve, vignetting, blur and noise (one ``rng`` draw); RGB (H, W, 3) uint8."""
+    if lens.size != (cam.width, cam.height):
+        raise ValueError(f"lens for {lens.size}, camera {cam.width} x {cam.height}")
+    ideal = render(cloud, lens.canvas(cam)).image
     hole = ~np.any(ideal > 0, axis=2)
     if hole.any():
         ideal = cv2.inpaint(ideal, hole.astype(np.uint8), 3, cv2.INPAINT_TELEA)
-    uu, vv = np.meshgrid(
-        np.arange(cam.width, dtype=np.float64), np.arange(cam.height, dtype=np.float64)
-    )
-    pts = np.c_[uu.ravel(), vv.ravel()].reshape(-1, 1, 2)
-    und = cv2.undistortPoints(pts, cam.K, np.asarray(dist, float), R=None, P=cam.K,
-                              criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-6)).reshape(-1, 2)  # fmt: skip
-    mx = (und[:, 0] + m * cam.width).reshape(cam.height, cam.width).astype(np.float32)
-    my = (und[:, 1] + m * cam.height).reshape(cam.height, cam.width).astype(np.float32)
-    img = cv2.remap(ideal, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT).astype(
-        np.float32
-    )
-    # another camera: white balance, tone curve, vignetting, blur, noise
-    img = img / 255.0 * np.array([1.06, 1.0, 0.88], np.float32)
+    img = cv2.remap(ideal, lens.mx, lens.my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    img = img.astype(np.float32) / 255.0 * np.array([1.06, 1.0, 0.88], np.float32)
     img = np.clip(img, 0, 1) ** 0.8
-    r2 = ((uu - cam.cx) ** 2 + (vv - cam.cy) ** 2) / (cam.width**2 / 4 + cam.height**2 / 4)
-    img *= (1.0 - 0.25 * r2)[..., None].astype(np.float32)
+    img *= lens.vignette
     img = cv2.GaussianBlur(img, (0, 0), 0.6)
     img = 255 * img + rng.normal(0, 2.5, img.shape).astype(np.float32)
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+def render_frame(world: World, cam: PinholeCamera, dist: list[float], rng: np.random.Generator,
+                 max_cells: int = 5_000_000) -> np.ndarray:  # fmt: skip
+    """The distorted, re-toned, noisy RGB frame (H, W, 3) uint8 seen by ``cam``."""
+    zg = world.ground(*cam.C[:2])
+    fp = ground_footprint(cam, zg)
+    pad = 60.0
+    bounds = (fp[:, 0].min() - pad, fp[:, 1].min() - pad, fp[:, 0].max() + pad,
+              fp[:, 1].max() + pad)  # fmt: skip
+    near = float(np.min(np.linalg.norm(np.c_[fp, np.full(len(fp), zg)] - cam.C, axis=1)))
+    res = frame_resolution(cam, bounds, zg, near, max_cells)
+    cloud = corridor_cloud(world, bounds, res, rng)
+    return camera_image(cloud, cam, Lens(cam, dist), rng)
 
 
 def rotation_error_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
