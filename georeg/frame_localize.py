@@ -4,12 +4,17 @@ Per frame: read, undistort (known ``camera``), coarse location by the map index
 (``frame_coarse``), render-match-PnP iterations against the textured map (``frame_pnp``),
 optional intensity refinement (``frame_refine``), outputs (``frame_outputs``). A frame whose
 coarse search or PnP does not reach the inlier bounds is ``not_found`` (never an error).
-Unknown intrinsics (``camera: null``): the focal length is searched in the coarse PnP over
-``focal_factors`` x the image width (principal point at the centre, no distortion).
+Unknown intrinsics (``camera: null``): the EXIF focal length of the file when it has one
+(``frame_exif``: 35 mm equivalent, or focal length and focal-plane resolution; ``intrinsics.source``
+= "exif"), else the focal length is searched in the coarse PnP over ``focal_factors`` x the image
+width and refined on the render stage's inliers (``frame_focal``, ``focal_rounds``; ``focal`` in
+the record, with the fit's relative standard deviation: a nadir view of flat ground does not
+determine it); principal point at the centre, no distortion, in both cases.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import glob
 import logging
 import time
@@ -21,6 +26,8 @@ import numpy as np
 
 from georeg.errors import InputError
 from georeg.frame_coarse import coarse_locate
+from georeg.frame_exif import exif_camera
+from georeg.frame_focal import estimate_focal
 from georeg.frame_outputs import (
     footprint_xy,
     overlay,
@@ -47,6 +54,7 @@ DEFAULTS: dict[str, Any] = {
     "cloud_margin_m": 120.0,  # map window read around the coarse footprint
     "max_cloud_extent_m": 1600.0,
     "focal_factors": [0.6, 0.8, 1.0, 1.3, 1.7],  # unknown camera: fx candidates x image width
+    "focal_rounds": 4,  # unknown camera: focal refinement + render-stage rounds (0: search only)
     "coarse": {},
     "pnp": {},
     "refine": {"enabled": True},
@@ -136,8 +144,12 @@ def _rot_err(Ra, Rb) -> float:
 def localize_frame(
     path: str, camera: dict | None, maps: MapSources, conf: dict
 ) -> tuple[dict, Any]:
-    """Pose of one frame file; returns (pose record, (undistorted rgb, final Render or None))."""
-    return localize_image(read_frame(path), str(path), camera, maps, conf)
+    """Pose of one frame file; returns (pose record, (undistorted rgb, final Render or None)).
+    ``camera`` None: the EXIF focal length when the file has one (``frame_exif``)."""
+    rgb = read_frame(path)
+    if not camera:
+        camera = exif_camera(path, rgb.shape[1], rgb.shape[0])
+    return localize_image(rgb, str(path), camera, maps, conf)
 
 
 def localize_image(
@@ -155,7 +167,7 @@ def localize_image(
         und = cv2.undistort(rgb, K, dist) if np.any(dist) else rgb
         gray = cv2.cvtColor(und, cv2.COLOR_RGB2GRAY)
         co = coarse_locate(gray, K, maps.index, c["coarse"], maps.dense)
-        focal_note = "given"
+        focal_note = camera.get("source", "given")  # "exif": from frame_exif
     else:
         und = rgb
         gray = cv2.cvtColor(und, cv2.COLOR_RGB2GRAY)
@@ -196,6 +208,12 @@ def localize_image(
         t2 = time.perf_counter()
         feat_conf = maps.index.meta.get("features_conf") or {}
         res = register_by_rendering(gray, cam0, cloud, maps.gsd, feat_conf, c["pnp"])
+        if not camera and res.ok and int(c["focal_rounds"]) > 0:  # searched focal: refine it
+            res, cam_f, rec["focal"] = estimate_focal(gray, res, cam0.with_pose(res.R, res.C), cloud,
+                                                      maps.gsd, feat_conf, c["pnp"], int(c["focal_rounds"]))  # fmt: skip
+            cam0 = dataclasses.replace(cam0, fx=cam_f.fx, fy=cam_f.fy)
+            rec["intrinsics"].update(fx=float(cam_f.fx), fy=float(cam_f.fy),
+                                     source="estimated (focal search, then refined in PnP)")  # fmt: skip
         timings["pnp_s"] = timings.get("pnp_s", 0.0) + time.perf_counter() - t2
         rec.setdefault("pnp_attempts", []).append({"start": how, "start_center_xyz": [float(v) for v in C0],
                                                    "inliers": res.inliers, "history": res.history})  # fmt: skip
@@ -246,6 +264,7 @@ def evaluate(rec: dict, truth: dict) -> dict:
     """Position (horizontal, vertical, 3-D, m) and rotation (deg) errors against a truth record."""
     out: dict[str, Any] = {"expected": truth.get("status")}
     Ct, Rt = np.asarray(truth["camera_center_xyz"]), np.asarray(truth["R_world_to_cam"])
+    out["truth_center_xyz"] = [float(v) for v in Ct]  # the report's camera path plot
     for key, src in (("final", rec), ("pnp", rec.get("pnp"))):
         if not src or src.get("camera_center_xyz") is None:
             continue

@@ -3,8 +3,9 @@
 ``results/report/index.html`` embeds every figure as a base64 data URI and its CSS inline; it
 loads nothing from the network and runs no script. Content: a summary table of all queries
 (status, outcome, inliers, error median / p90, time), one section per query (numbers, parts
-before / after fusing, figures with captions), per-stage timings parsed from the rule logs
-(``rule X done in N s``) and Snakemake benchmark files, the benchmark table when
+before / after fusing, figures with captions), the frame sets' poses against truth and their
+overlays when ``frames`` are configured (``georeg.report_frames``), per-stage timings parsed from
+the rule logs (``rule X done in N s``) and Snakemake benchmark files, the benchmark table when
 ``results/benchmark/summary.csv`` exists, and the configuration used (YAML).
 
 Every number of the summary table is written with ``data-key`` / ``data-value`` attributes
@@ -73,6 +74,9 @@ nav a{margin-right:14px}
 #benchmark th.strategy{text-align:center;background:#d5dfee}
 #benchmark td.note{min-width:200px;font-size:12px}
 summary{cursor:pointer;color:#14325c;margin:6px 0}
+.overlays{display:flex;flex-wrap:wrap;gap:10px;align-items:flex-start}
+figure.overlay{margin:0;padding:6px;max-width:372px}figure.path-plot{max-width:420px}
+table.frames td,table.frames th{padding:3px 7px}
 """
 
 
@@ -524,8 +528,14 @@ def build_report(
     log_roots: Iterable[str | Path] = ("logs",),
     benchmark_csv: str | Path | None = None,
     overview_png: str | Path | None = None,
+    frame_sets: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> dict[str, Any]:
-    """Write the self-contained report; returns the summary rows (also embedded in the page)."""
+    """Write the self-contained report; returns the summary rows (also embedded in the page).
+
+    ``frame_sets``: ``{set: {"poses": poses.json, "truth": truth.json or None}}`` adds the frames
+    section (``georeg.report_frames``); none: no section."""
+    from georeg.report_frames import frames_section
+
     regs = {q.name: _read_json(q.registration) for q in queries}
     evs = {q.name: _read_json(q.evaluation) for q in queries}
     rows = [summary_row(q.name, regs[q.name], evs[q.name]) for q in queries]
@@ -542,6 +552,7 @@ def build_report(
         f'<a href="#{a}">{t}</a>'
         for a, t in [
             ("summary-h", "summary"),
+            *([("frames", "frames")] if frame_sets else []),
             ("timings", "timings"),
             ("benchmark-h", "benchmark"),
             ("config", "configuration"),
@@ -567,6 +578,7 @@ def build_report(
         )
     for q in queries:
         body.append(query_section(q, regs[q.name], evs[q.name]))
+    body.append(frames_section(frame_sets or {}))
     body += [
         '<h2 id="timings">per-stage timings</h2>',
         '<p class="note">from the rule logs ("rule X done in N s") and Snakemake benchmark files; '
@@ -634,15 +646,19 @@ def run_report(
     log_roots: Iterable[str | Path] = ("logs",),
     benchmark_csv: str | Path | None = None,
     overview_png: str | Path | None = None,
+    frame_sets: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> dict[str, Any]:
-    """Rule report_html: the page and, when asked, the summary CSV (lists aligned by query)."""
+    """Rule report_html: the page and, when asked, the summary CSV (lists aligned by query);
+    ``frame_sets`` as in ``build_report``."""
     if not (len(names) == len(registrations) == len(evaluations) == len(figure_dirs)):
         raise ValueError("names, registrations, evaluations and figure_dirs differ in length")
     queries = [
         QueryInputs(n, Path(r), Path(e), Path(f))
         for n, r, e, f in zip(names, registrations, evaluations, figure_dirs, strict=True)
     ]
-    res = build_report(queries, config, out_html, log_roots, benchmark_csv, overview_png)
+    res = build_report(
+        queries, config, out_html, log_roots, benchmark_csv, overview_png, frame_sets
+    )
     if out_csv:
         write_summary_csv(res["queries"], out_csv)
     log.info("report %s: %d queries, %d timing rows", out_html, len(queries), len(res["timings"]))

@@ -5,6 +5,12 @@ from georeg.scripting import run
 
 
 def main(smk):
+    frame_sets = {
+        name: {"poses": poses, "truth": truth}
+        for name, poses, truth in zip(
+            smk.params.frame_sets, smk.input.frames, smk.params.frame_truth, strict=True
+        )
+    }
     run_report(
         list(smk.params.queries),
         list(smk.input.registration),
@@ -16,6 +22,7 @@ def main(smk):
         log_roots=list(smk.params.logs),
         benchmark_csv=smk.input.benchmark[0] if smk.input.benchmark else None,
         overview_png=smk.input.overview,
+        frame_sets=frame_sets,
     )
 
 

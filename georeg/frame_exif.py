@@ -1,0 +1,71 @@
+"""Focal length of a frame from its EXIF tags (Pillow), for ``camera: null`` (issue 9).
+
+In order: ``FocalLengthIn35mmFilm`` (fx = f35 / 36 mm x the image's long side, the 36 mm side of
+a 35 mm frame), else ``FocalLength`` (mm) x ``FocalPlaneXResolution`` (sensor pixels per
+``FocalPlaneResolutionUnit``: 2 inch, 3 cm, 4 mm, 5 um), rescaled when the image was resized
+from the ``PixelXDimension`` it was taken at. The principal point is put at the image centre,
+no distortion. None when the file has no such tags (then the focal length is searched).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+EXIF_IFD = 0x8769
+FOCAL_LENGTH = 37386
+FOCAL_35MM = 41989
+FOCAL_PLANE_XRES = 41486
+FOCAL_PLANE_UNIT = 41488
+PIXEL_X_DIMENSION = 40962
+UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 1e-3}  # FocalPlaneResolutionUnit -> mm
+
+
+def _num(v: Any) -> float | None:
+    """An EXIF number (int, IFDRational, (num, den) tuple) as a positive float, else None."""
+    try:
+        f = float(v[0]) / float(v[1]) if isinstance(v, tuple) else float(v)
+    except (TypeError, ValueError, ZeroDivisionError, IndexError):
+        return None
+    return f if f > 0 and f == f and f != float("inf") else None
+
+
+def exif_focal_px(path: str | Path) -> tuple[float, str] | None:
+    """(fx in pixels of the image as stored, which tags gave it), or None."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            w, h = im.size
+            exif = im.getexif()
+            tags = {**dict(exif), **dict(exif.get_ifd(EXIF_IFD))}
+    except (OSError, UnidentifiedImageError, SyntaxError) as exc:  # not an image / bad EXIF
+        log.warning("no EXIF read from %s: %s", path, exc)
+        return None
+    f35 = _num(tags.get(FOCAL_35MM))
+    if f35:
+        return f35 / 36.0 * max(w, h), "FocalLengthIn35mmFilm"
+    fmm, xres = _num(tags.get(FOCAL_LENGTH)), _num(tags.get(FOCAL_PLANE_XRES))
+    unit = UNIT_MM.get(int(_num(tags.get(FOCAL_PLANE_UNIT)) or 2))
+    if fmm and xres and unit:
+        fx = fmm * xres / unit  # mm x (sensor px / unit) / (mm / unit)
+        full_w = _num(tags.get(PIXEL_X_DIMENSION))
+        if full_w and abs(full_w - w) > 1 and abs(full_w - h) > 1:
+            fx *= w / full_w  # resized since it was taken
+        return fx, "FocalLength x FocalPlaneXResolution"
+    return None
+
+
+def exif_camera(path: str | Path, width: int, height: int) -> dict[str, Any] | None:
+    """A ``camera`` dict (pixels; centred principal point, no distortion, ``source: exif``)
+    from the EXIF focal length of ``path``, or None."""
+    got = exif_focal_px(path)
+    if got is None:
+        return None
+    fx, tags = got
+    log.info("%s: EXIF focal length %.1f px (%s)", Path(path).name, fx, tags)
+    return {"fx": fx, "fy": fx, "cx": (width - 1) / 2, "cy": (height - 1) / 2,
+            "dist": [0.0] * 5, "source": "exif", "exif_tags": tags}  # fmt: skip
