@@ -28,6 +28,7 @@ include: "workflow/rules/products.smk"
 include: "workflow/rules/report.smk"
 include: "workflow/rules/demo_frames.smk"
 include: "workflow/rules/frames.smk"
+include: "workflow/rules/trajectory.smk"
 
 
 rule all:

@@ -30,6 +30,12 @@ _replace_user_sections(config)
 validate(config, schema="../schemas/config.schema.yaml")
 
 QUERIES = sorted(config["queries"])
+FRAME_SETS = sorted(config.get("frames") or {})  # frame geo-localisation sets (frames, report)
+# sets with a `video` (or `trajectory: true`) are trajectories (rule trajectory), the others
+# independent frames (rule localize_frames); both write results/frames/{set}/poses.json
+VIDEO_SETS = [s for s in FRAME_SETS if config["frames"][s].get("video")
+              or config["frames"][s].get("trajectory")]  # fmt: skip
+IMAGE_SETS = [s for s in FRAME_SETS if s not in VIDEO_SETS]
 
 
 def query_name_pattern():
@@ -241,3 +247,28 @@ def rep_benchmark(wildcards):
     rebuilds the page); the benchmark is not a rule: it measures the library, minutes long."""
     return [REP_BENCH] if Path(REP_BENCH).exists() else []
 
+
+
+
+# ----------------------------------------------------------------- frames and trajectories
+
+
+def frame_set_media(fset):
+    """The set's video file, or its ordered image list (paths and globs expanded)."""
+    from georeg.frame_localize import frame_images
+
+    fs = config["frames"][fset]
+    return [fs["video"]] if fs.get("video") else frame_images(fs.get("images"))
+
+
+def frame_set_truth(fset):
+    """The set's truth.json as a one-item list, or nothing."""
+    t = config["frames"][fset].get("truth")
+    return [t] if t else []
+
+
+def frame_laz_inputs():
+    """The tiles' textured points.laz when frames are rendered from points, else nothing."""
+    if (config.get("frame_loc") or {}).get("render_source") == "points":
+        return expand("results/map/tiles/{tile}/points.laz", tile=index_tile_ids())
+    return []

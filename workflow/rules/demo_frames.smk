@@ -20,3 +20,21 @@ rule demo_frames:
     threads: 1
     script:
         "../../scripts/demo_frames.py"
+
+
+# Demo video (issue 10): a smooth drone flight over the demo city with a truth pose per frame,
+# rendered by georeg.demo.video from the same textured scene as the frames above.
+
+rule demo_video:
+    input:
+        scene="results/demo/scene.json",
+    output:
+        video="results/demo/video/flight.mp4",
+        truth="results/demo/video/truth.json",
+    params:
+        demo_video=(config.get("trajectory") or {}).get("demo_video") or {},
+    log:
+        "logs/demo/demo_video.log",
+    threads: 1
+    script:
+        "../../scripts/demo_video.py"

@@ -5,7 +5,6 @@
 
 from georeg.frame_localize import frame_images
 
-FRAME_SETS = sorted(config.get("frames") or {})
 FRAME_LOC = {k: v for k, v in (config.get("frame_loc") or {}).items() if k != "demo_frames"}
 
 
@@ -32,7 +31,7 @@ rule localize_frames:
         frames=lambda wc: config["frames"][wc.fset],
         frame_loc=FRAME_LOC,
     wildcard_constraints:
-        fset="|".join(re.escape(s) for s in FRAME_SETS) or "(?!)",
+        fset="|".join(re.escape(s) for s in IMAGE_SETS) or "(?!)",
     log:
         "logs/frames/{fset}.log",
     threads: 1
@@ -42,4 +41,4 @@ rule localize_frames:
         "../../scripts/localize_frames.py"
 
 
-TARGETS.append(expand("results/frames/{fset}/poses.json", fset=FRAME_SETS))
+TARGETS.append(expand("results/frames/{fset}/poses.json", fset=IMAGE_SETS))

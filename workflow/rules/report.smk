@@ -1,5 +1,6 @@
 # Evaluation and the report (issue 7): per-query evaluation.json against the truth, per-query
-# figures, the self-contained results/report/index.html, and Snakemake's own report
+# figures, the self-contained results/report/index.html (queries, and the frame sets' poses.json
+# with their overlays when `frames` has sets), and Snakemake's own report
 # (`snakemake --report report.html`, captions in workflow/report/). Params hold only the
 # `report:` keys each rule uses: changing them never reruns a registration.
 
@@ -72,6 +73,7 @@ rule report_html:
         figures=expand("results/report/figures/{name}", name=QUERIES),
         overview="results/map/overview.png",
         benchmark=rep_benchmark,
+        frames=expand("results/frames/{fset}/poses.json", fset=FRAME_SETS),
     output:
         html=report(
             "results/report/index.html",
@@ -87,6 +89,8 @@ rule report_html:
         ),
     params:
         queries=QUERIES,
+        frame_sets=FRAME_SETS,
+        frame_truth=[(config["frames"][s] or {}).get("truth") for s in FRAME_SETS],
         config=config,
         logs=["logs", "benchmarks"],
     log:

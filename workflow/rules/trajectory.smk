@@ -1,0 +1,40 @@
+# Video trajectory geo-referencing (issue 10): a frame set with a `video` (or `trajectory: true`
+# on an ordered image list) -> keyframes -> pycolmap SfM -> anchor keyframes registered by the
+# single-frame method -> Sim(3) by structure projection -> ICP -> every frame located.
+# Same outputs as rule localize_frames (poses.json, one entry per frame) plus the trajectory as
+# CSV / GeoJSON / KML, the geo-registered 3-D feature map (LAZ + descriptors) and trajectory.json.
+
+
+rule trajectory:
+    input:
+        video=lambda wc: frame_set_media(wc.vset),
+        index=f"{INDEX_DIR}/meta.json",
+        ortho="results/map/mosaic/ortho.vrt",
+        dsm="results/map/mosaic/dsm.vrt",
+        laz=lambda wc: frame_laz_inputs(),
+        truth=lambda wc: frame_set_truth(wc.vset),
+    output:
+        poses="results/frames/{vset}/poses.json",
+        info="results/frames/{vset}/trajectory.json",
+        csv="results/frames/{vset}/trajectory.csv",
+        geojson="results/frames/{vset}/trajectory.geojson",
+        kml="results/frames/{vset}/trajectory.kml",
+        laz="results/frames/{vset}/sfm_points.laz",
+        descriptors="results/frames/{vset}/sfm_points_descriptors.npy",
+        overlays=directory("results/frames/{vset}/overlays"),
+    params:
+        frames=lambda wc: config["frames"][wc.vset],
+        frame_loc=FRAME_LOC,
+        trajectory={k: v for k, v in config["trajectory"].items() if k != "demo_video"},
+    wildcard_constraints:
+        vset="|".join(re.escape(s) for s in VIDEO_SETS) or "(?!)",
+    log:
+        "logs/frames/{vset}.log",
+    threads: 2
+    resources:
+        mem_mb=4000,
+    script:
+        "../../scripts/trajectory.py"
+
+
+TARGETS.append(expand("results/frames/{vset}/poses.json", vset=VIDEO_SETS))
