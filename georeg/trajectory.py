@@ -275,7 +275,7 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
                                                                      kf_dist)), "width": w, "height": h,
                              "source": "given" if camera else "sfm self-calibration"}  # fmt: skip
         per_frame_s.append(time.perf_counter() - tf)
-        rec["timings_s"] = {"frame_s": round(per_frame_s[-1], 4)}
+        rec["timings_s"] = {"total_s": round(per_frame_s[-1], 4)}
         if name in truth:
             ev = evaluate(rec, truth[name])
             if fp.ok:

@@ -21,3 +21,39 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip("../shared/data is absent")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def small_demo_map(tmp_path_factory):
+    """A 640 m demo city (seed 7) with a one-tile map and its index, built once per session:
+    (dir, scene paths, tile dir, tile layer paths). Frames and video tests add their own files
+    in their own sub-directories."""
+    import json
+
+    import numpy as np
+
+    from georeg.demo import generate_scene
+    from georeg.elevation import LAYERS, make_elevation_tile
+    from georeg.features import extract_tile_from_grid
+    from georeg.index import MapIndex
+    from georeg.mapgrid import make_ortho_tile, write_grid
+    from georeg.vocabulary import build_vocabulary
+
+    tmp = tmp_path_factory.mktemp("small_demo_map")
+    conf = {"seed": 7, "size_m": 640, "margin_m": 320, "lidar_tiles": 1,
+            "query": {"samples": 64, "lines": 64, "bands": 8}}  # fmt: skip
+    paths = generate_scene(conf, tmp / "demo")
+    write_grid(tmp / "grid.json", [paths["orthophoto"]], 1024, 64)
+    tile = "r000_c000"
+    tdir = tmp / "tiles" / tile
+    make_ortho_tile(tmp / "grid.json", tile, tdir / "ortho.tif")
+    outs = {k: str(tdir / f"{k}.tif") for k in LAYERS} | {"points": str(tdir / "points.laz")}
+    make_elevation_tile(str(tdir / "ortho.tif"), outs, [paths["lidar_0"]])
+    fdir = tmp / "features" / tile
+    extract_tile_from_grid(tmp / "grid.json", tile, tdir / "ortho.tif", outs["dsm"], outs["ndsm"],
+                           {"rootsift": True, "max_features_per_mpx": 8000}, fdir)  # fmt: skip
+    build_vocabulary([fdir], tmp / "vocab", {"k": 200, "sample_size": 50000}, 42)
+    crs = json.loads((tmp / "grid.json").read_text()).get("crs")
+    MapIndex.build([fdir], [tile], np.load(tmp / "vocab" / "centroids.npy"), tmp / "index",
+                   crs_wkt=crs)  # fmt: skip
+    return tmp, paths, tdir, outs

@@ -80,35 +80,10 @@ def test_heightfield_walls_fill_facades():
 
 
 @pytest.fixture(scope="module")
-def demo_map(tmp_path_factory):
-    from georeg.demo import generate_scene
+def demo_map(small_demo_map):
     from georeg.demo.frames import generate_frames
-    from georeg.elevation import LAYERS, make_elevation_tile
-    from georeg.features import extract_tile_from_grid
-    from georeg.index import MapIndex
-    from georeg.mapgrid import make_ortho_tile, write_grid
-    from georeg.vocabulary import build_vocabulary
 
-    tmp = tmp_path_factory.mktemp("frames")
-    conf = {"seed": 7, "size_m": 640, "margin_m": 320, "lidar_tiles": 1,
-            "query": {"samples": 64, "lines": 64, "bands": 8}}  # fmt: skip
-    paths = generate_scene(conf, tmp / "demo")
-    write_grid(tmp / "grid.json", [paths["orthophoto"]], 1024, 64)
-    tile = "r000_c000"
-    tdir = tmp / "tiles" / tile
-    make_ortho_tile(tmp / "grid.json", tile, tdir / "ortho.tif")
-    outs = {k: str(tdir / f"{k}.tif") for k in LAYERS} | {"points": str(tdir / "points.laz")}
-    make_elevation_tile(str(tdir / "ortho.tif"), outs, [paths["lidar_0"]])
-    feat = {"rootsift": True, "max_features_per_mpx": 8000}
-    fdir = tmp / "features" / tile
-    extract_tile_from_grid(
-        tmp / "grid.json", tile, tdir / "ortho.tif", outs["dsm"], outs["ndsm"], feat, fdir
-    )
-    build_vocabulary([fdir], tmp / "vocab", {"k": 200, "sample_size": 50000}, 42)
-    crs = json.loads((tmp / "grid.json").read_text()).get("crs")
-    MapIndex.build(
-        [fdir], [tile], np.load(tmp / "vocab" / "centroids.npy"), tmp / "index", crs_wkt=crs
-    )
+    tmp, paths, tdir, outs = small_demo_map
     views = [{"name": "nadir_120", "off_nadir_deg": 0.0, "agl_m": 120.0, "heading_deg": 30.0},
              {"name": "outside", "off_nadir_deg": 20.0, "agl_m": 150.0, "heading_deg": 300.0, "outside": True}]  # fmt: skip
     generate_frames(paths["scene"], tmp / "frames", views, seed=9)

@@ -14,32 +14,10 @@ VIDEO = {"n_frames": 90, "width": 480, "height": 360, "fx": 390.0}
 
 
 @pytest.fixture(scope="module")
-def small_map(tmp_path_factory):
-    from georeg.demo import generate_scene
+def small_map(small_demo_map):
     from georeg.demo.video import generate_video
-    from georeg.elevation import LAYERS, make_elevation_tile
-    from georeg.features import extract_tile_from_grid
-    from georeg.index import MapIndex
-    from georeg.mapgrid import make_ortho_tile, write_grid
-    from georeg.vocabulary import build_vocabulary
 
-    tmp = tmp_path_factory.mktemp("trajectory")
-    conf = {"seed": 7, "size_m": 640, "margin_m": 320, "lidar_tiles": 1,
-            "query": {"samples": 64, "lines": 64, "bands": 8}}  # fmt: skip
-    paths = generate_scene(conf, tmp / "demo")
-    write_grid(tmp / "grid.json", [paths["orthophoto"]], 1024, 64)
-    tile = "r000_c000"
-    tdir = tmp / "tiles" / tile
-    make_ortho_tile(tmp / "grid.json", tile, tdir / "ortho.tif")
-    outs = {k: str(tdir / f"{k}.tif") for k in LAYERS} | {"points": str(tdir / "points.laz")}
-    make_elevation_tile(str(tdir / "ortho.tif"), outs, [paths["lidar_0"]])
-    fdir = tmp / "features" / tile
-    extract_tile_from_grid(tmp / "grid.json", tile, tdir / "ortho.tif", outs["dsm"], outs["ndsm"],
-                           {"rootsift": True, "max_features_per_mpx": 8000}, fdir)  # fmt: skip
-    build_vocabulary([fdir], tmp / "vocab", {"k": 200, "sample_size": 50000}, 42)
-    crs = json.loads((tmp / "grid.json").read_text()).get("crs")
-    MapIndex.build([fdir], [tile], np.load(tmp / "vocab" / "centroids.npy"), tmp / "index",
-                   crs_wkt=crs)  # fmt: skip
+    tmp, paths, tdir, outs = small_demo_map
     truth = generate_video(paths["scene"], tmp / "video", VIDEO, seed=10)
     return tmp, tdir, outs, truth
 
@@ -54,7 +32,7 @@ def georeferenced(small_map):
     fs = {"video": str(tmp / "video" / "flight.mp4"),
           "camera": {k: it[k] for k in ("fx", "fy", "cx", "cy", "dist")}}  # fmt: skip
     maps = MapSources(tmp / "index", tdir / "ortho.tif", outs["dsm"], [])
-    out = tmp / "out"
+    out = tmp / "trajectory_out"
     poses = georeference_video(fs, maps, {"refine": {"enabled": False}}, {"seed": 3}, out, None,
                                str(tmp / "video" / "truth.json"))  # fmt: skip
     return out, poses, json.loads((out / "trajectory.json").read_text())
