@@ -29,6 +29,7 @@ from georeg.frame_coarse import coarse_locate
 from georeg.frame_exif import exif_camera
 from georeg.frame_focal import estimate_focal
 from georeg.frame_outputs import (
+    footprint_window,
     footprint_xy,
     overlay,
     write_geojson,
@@ -197,12 +198,8 @@ def localize_image(
         t1 = time.perf_counter()
         cam0 = PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, R0, C0)
         zg = maps.ground_z(C0)
-        fp = footprint_xy(cam0, zg)
-        m = float(c["cloud_margin_m"])
-        b = [fp[:, 0].min() - m, fp[:, 1].min() - m, fp[:, 0].max() + m, fp[:, 1].max() + m]
-        half = float(c["max_cloud_extent_m"]) / 2
-        b = [max(b[0], C0[0] - half), max(b[1], C0[1] - half), min(b[2], C0[0] + half),
-             min(b[3], C0[1] + half)]  # fmt: skip
+        b = footprint_window([cam0], zg, float(c["cloud_margin_m"]),
+                             float(c["max_cloud_extent_m"]), centre=C0)  # fmt: skip
         cloud = maps.cloud(b, c["render_source"])
         timings["cloud_s"] = time.perf_counter() - t1
         t2 = time.perf_counter()

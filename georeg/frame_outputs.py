@@ -30,11 +30,24 @@ def footprint_xy(cam: PinholeCamera, z_ground: float, n: int = 4) -> np.ndarray:
     return cam.C[None, :2] + s[:, None] * d[:, :2]
 
 
+def footprint_window(cams: list[PinholeCamera], z_ground: float, margin: float, cap: float,
+                     centre: np.ndarray | None = None) -> list[float]:  # fmt: skip
+    """Map window (x0, y0, x1, y1) around the cameras' footprints on z = z_ground, grown by
+    ``margin``, cut to at most ``cap`` wide around ``centre`` (x, y; default the window's centre)."""
+    fp = np.concatenate([footprint_xy(c, z_ground) for c in cams])
+    b = [fp[:, 0].min() - margin, fp[:, 1].min() - margin, fp[:, 0].max() + margin,
+         fp[:, 1].max() + margin]  # fmt: skip
+    cx, cy = ((b[0] + b[2]) / 2, (b[1] + b[3]) / 2) if centre is None else centre[:2]
+    half = cap / 2
+    return [max(b[0], cx - half), max(b[1], cy - half), min(b[2], cx + half), min(b[3], cy + half)]
+
+
 def write_poses(path: str | Path, poses: list[dict]) -> None:
     write_json(path, poses)
 
 
-def _crs_urn(crs: pyproj.CRS) -> str | None:
+def crs_urn(crs: pyproj.CRS) -> str | None:
+    """GeoJSON 2008 CRS name of an EPSG CRS (None without an EPSG code)."""
     epsg = crs.to_epsg()
     return f"urn:ogc:def:crs:EPSG::{epsg}" if epsg else None
 
@@ -57,7 +70,7 @@ def write_geojson(path: str | Path, poses: list[dict], crs_wkt: str) -> None:
                           "geometry": {"type": "Polygon", "coordinates": [ring]}})  # fmt: skip
     fc: dict[str, Any] = {"type": "FeatureCollection", "features": feats,
                           "properties": {"crs_wkt": crs.to_wkt()}}  # fmt: skip
-    urn = _crs_urn(crs)
+    urn = crs_urn(crs)
     if urn:
         fc["crs"] = {"type": "name", "properties": {"name": urn}}
     write_text(path, json.dumps(fc, indent=1))

@@ -23,6 +23,7 @@ import cv2
 import numpy as np
 
 from georeg.frame_pnp import solve_pnp
+from georeg.render_points import PinholeCamera
 
 log = logging.getLogger(__name__)
 
@@ -98,19 +99,16 @@ class Tracker:
         self.uv, self.xyz, self.prev = q[keep], self.xyz[keep], gray
         pose = _pnp(self.xyz, self.uv.astype(np.float64), self.K, self.c, "tracking")
         if pose.ok:  # drop tracks that no longer agree with the pose (drifted or occluded)
-            proj, z = _project(self.xyz, pose.R, pose.C, self.K)
+            proj, z = _project(self.xyz, pose.R, pose.C, self.K, gray.shape[::-1])
             good = (np.linalg.norm(proj - self.uv, axis=1) < 2 * float(self.c["reproj_px"]))
             good &= z > 0
             self.uv, self.xyz = self.uv[good], self.xyz[good]
         return pose
 
 
-def _project(xyz: np.ndarray, R: np.ndarray, C: np.ndarray, K: np.ndarray):
-    Xc = (xyz - C) @ np.asarray(R).T
-    z = Xc[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = (Xc[:, :2] / z[:, None]) * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
-    return uv, z
+def _project(xyz: np.ndarray, R: np.ndarray, C: np.ndarray, K: np.ndarray, size: tuple[int, int]):
+    """(uv, depth) of world points in the camera (K, R, C) of image ``size`` (w, h)."""
+    return PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], *size, R, C).project(xyz)
 
 
 def colmap_sift(max_features: int = 4000):
@@ -147,7 +145,7 @@ class PointMapLocalizer:
         """Indices of the map points in front of the prior camera and inside its (grown) view."""
         if prior is None:
             return np.arange(len(self.xyz))
-        uv, z = _project(self.xyz, prior[0], prior[1], self.K)
+        uv, z = _project(self.xyz, prior[0], prior[1], self.K, (self.w, self.h))
         m = float(self.c["prior_margin"])
         ok = (z > 0) & (uv[:, 0] > -m * self.w) & (uv[:, 0] < (1 + m) * self.w)
         ok &= (uv[:, 1] > -m * self.h) & (uv[:, 1] < (1 + m) * self.h)
@@ -176,6 +174,6 @@ class PointMapLocalizer:
         pose = _pnp(xyz, uv, self.K, self.c, "relocalisation")
         if not pose.ok:
             return pose, *empty
-        proj, z = _project(xyz, pose.R, pose.C, self.K)
+        proj, z = _project(xyz, pose.R, pose.C, self.K, (self.w, self.h))
         good = (np.linalg.norm(proj - uv, axis=1) < float(self.c["reproj_px"])) & (z > 0)
         return pose, uv[good], xyz[good]

@@ -31,8 +31,15 @@ from typing import Any
 import cv2
 import numpy as np
 
-from georeg.frame_localize import MapSources, display_render, evaluate, localize_image
-from georeg.frame_outputs import footprint_xy, overlay, write_png, write_poses
+from georeg.atomic import write_json
+from georeg.frame_localize import (
+    MapSources,
+    camera_matrix,
+    display_render,
+    evaluate,
+    localize_image,
+)
+from georeg.frame_outputs import footprint_window, footprint_xy, overlay, write_png, write_poses
 from georeg.relocalize import FramePose, PointMapLocalizer, Tracker
 from georeg.render_points import PinholeCamera
 from georeg.sim3 import Sim3, transform_pose
@@ -62,9 +69,7 @@ def _undistorter(camera: dict | None, size: tuple[int, int]):
     if not camera:
         return None, lambda im: im
     w, h = size
-    K = np.array([[camera["fx"], 0, camera["cx"]], [0, camera["fy"], camera["cy"]], [0, 0, 1]],
-                 float)  # fmt: skip
-    dist = np.asarray(camera.get("dist") or [0, 0, 0, 0, 0], float)
+    K, dist = camera_matrix(camera, w, h)
     if not np.any(dist):
         return K, lambda im: im
     m1, m2 = cv2.initUndistortRectifyMap(K, dist, None, K, (w, h), cv2.CV_16SC2)
@@ -93,15 +98,6 @@ def _stats(errs: list[dict]) -> dict:
         out[k] = {"mean": float(v.mean()), "median": float(np.median(v)),
                   "p90": float(np.percentile(v, 90)), "max": float(v.max())}  # fmt: skip
     return out
-
-
-def _corridor(cams: list[PinholeCamera], z_ground: float, margin: float, cap: float) -> list[float]:
-    fp = np.concatenate([footprint_xy(c, z_ground) for c in cams])
-    b = [fp[:, 0].min() - margin, fp[:, 1].min() - margin, fp[:, 0].max() + margin,
-         fp[:, 1].max() + margin]  # fmt: skip
-    cx, cy = (b[0] + b[2]) / 2, (b[1] + b[3]) / 2
-    half = cap / 2
-    return [max(b[0], cx - half), max(b[1], cy - half), min(b[2], cx + half), min(b[3], cy + half)]
 
 
 def georeference_video(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict,
@@ -135,15 +131,13 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
                       c["max_frames"], frame_set.get("fps") or c["fps"])  # fmt: skip
     fps = float(src.fps or c["fps"])
     camera = frame_set.get("camera")
-    first = next(iter(src))[2]
-    h, w = first.shape[:2]
+    w, h = src.width, src.height
     K, undistort = _undistorter(camera, (w, h))
     log.info("%s: %d frames of %d x %d at %.3g fps", src.video or "image list", len(src), w, h, fps)
 
     # 1. keyframes (streamed), written undistorted for the SfM
     t0 = time.perf_counter()
-    keys = select_keyframes(((i, _gray(undistort(rgb))) for i, _, rgb in src), c["keyframes"])
-    key_idx = [int(k) for k in getattr(keys, "indices", keys)]
+    key_idx = select_keyframes(((i, _gray(undistort(rgb))) for i, _, rgb in src), c["keyframes"])
     kf_dir = work / "keyframes"
     if kf_dir.exists():
         shutil.rmtree(kf_dir)
@@ -166,9 +160,13 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
     except ValueError as exc:  # no usable reconstruction: an honest not_found, not a crash
         log.warning("SfM failed: %s", exc)
         info["reason"] = f"SfM: {exc}"
-        return _write_not_found(out, names, fps, maps, info, c, timings, t_all)
+        return _write_not_found(out, names, fps, maps.crs_wkt, info, timings, t_all)
     timings["sfm_s"] = time.perf_counter() - t0
     K = np.asarray(model.K, float) if K is None else K
+
+    def cam_at(R: np.ndarray, C: np.ndarray) -> PinholeCamera:
+        return PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, R, C)
+
     kf_dist = np.zeros(5) if camera else np.r_[np.asarray(model.dist, float), np.zeros(5)][:5]
     cam_known = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "dist": kf_dist.tolist()}
     log.info("SfM: %d of %d keyframes, %d points (%.1f s)", len(model.names), len(key_idx),
@@ -195,14 +193,14 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
     if not anchors:
         log.warning("no keyframe registered to the map: every frame not_found")
         info["reason"] = "no anchor keyframe registered to the map"
-        return _write_not_found(out, names, fps, maps, info, c, timings, t_all)
+        return _write_not_found(out, names, fps, maps.crs_wkt, info, timings, t_all)
 
     # 4. structure projection -> Sim(3)
     t0 = time.perf_counter()
-    cams_a = [PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, R, C) for _, R, C in anchors]
     zg = maps.ground_z(anchors[0][2])
-    bounds = _corridor(cams_a, zg, float(frame_loc.get("cloud_margin_m", 120.0)),
-                       float(frame_loc.get("max_cloud_extent_m", 1600.0)))  # fmt: skip
+    bounds = footprint_window([cam_at(R, C) for _, R, C in anchors], zg,
+                              float(frame_loc.get("cloud_margin_m", 120.0)),
+                              float(frame_loc.get("max_cloud_extent_m", 1600.0)))  # fmt: skip
     source = frame_loc.get("render_source", "heightfield")
     cloud_a = maps.cloud(bounds, source)
     try:
@@ -211,15 +209,14 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
     except ValueError as exc:
         log.warning("Sim(3) SfM -> map failed: %s", exc)
         info["reason"] = f"structure projection: {exc}"
-        return _write_not_found(out, names, fps, maps, info, c, timings, t_all)
+        return _write_not_found(out, names, fps, maps.crs_wkt, info, timings, t_all)
     timings["sim3_s"] = time.perf_counter() - t0
     info["sim3"] = {**sinfo, "scale": float(sim.s)}
 
     # 5. ICP against the map surface along the whole trajectory
     t0 = time.perf_counter()
-    kcams = [PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, *transform_pose(sim, R, C))
-             for R, C in zip(model.R, model.C, strict=True)]  # fmt: skip
-    corridor = _corridor(kcams, zg, float(c["corridor_margin_m"]), 4000.0)
+    kcams = [cam_at(*transform_pose(sim, R, C)) for R, C in zip(model.R, model.C, strict=True)]
+    corridor = footprint_window(kcams, zg, float(c["corridor_margin_m"]), 4000.0)
     cloud = maps.cloud(corridor, source)
     final = sim
     if (c.get("icp") or {}).get("enabled", True):
@@ -232,9 +229,16 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
 
     # 6. every frame
     t0 = time.perf_counter()
-    kf_pose = {}
-    for nm, R, C in zip(model.names, model.R, model.C, strict=True):
-        kf_pose[int(nm[3:9])] = transform_pose(final, R, C)
+    kf_frame = {_kf_name(i): i for i in key_idx}  # keyframe PNG name -> frame index
+    kf_pose = {kf_frame[nm]: transform_pose(final, R, C)
+               for nm, R, C in zip(model.names, model.R, model.C, strict=True)}  # fmt: skip
+    n_ov = int(c["overlays"])
+    ov_frames = set(np.asarray(src.indices())[np.linspace(0, len(src) - 1, n_ov).round().astype(int)]
+                    .tolist()) if n_ov else set()  # fmt: skip
+    ov_dir = out / "overlays"
+    if ov_dir.exists():
+        shutil.rmtree(ov_dir)
+    ov_dir.mkdir(parents=True)
     tracker = Tracker(K, c["track"])
     reloc = PointMapLocalizer(xyz_map, model.descriptors, K, (w, h), c["track"])
     truth = _read_truth(truth_path)
@@ -250,7 +254,7 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
             R, C = kf_pose[i]
             pt, uv = model.observations(_kf_name(i))
             tracker.reset(gray, uv, xyz_map[pt])
-            proj, _ = PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, R, C).project(xyz_map[pt])
+            proj, _ = cam_at(R, C).project(xyz_map[pt])
             rms = float(np.sqrt(np.mean(np.sum((proj - uv) ** 2, axis=1)))) if len(pt) else float("nan")
             fp = FramePose(True, R, C, int(len(pt)), rms, "sfm")
         else:
@@ -261,7 +265,7 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
                     tracker.reset(gray, uv, xyz)
         if fp.ok:
             last = (fp.R, fp.C)
-            cam = PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, fp.R, fp.C)
+            cam = cam_at(fp.R, fp.C)
             rec.update(status="registered", source=fp.source,
                        camera_center_xyz=[float(v) for v in fp.C],
                        R_world_to_cam=np.asarray(fp.R).tolist(), inliers=int(fp.inliers),
@@ -283,11 +287,14 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
                 ev["before_icp"] = _pose_error(Rb, Cb, truth[name])
             rec["evaluation"] = ev
         poses.append(rec)
+        if i in ov_frames:  # the map rendered at the found pose, over the frame
+            rend = display_render(cloud, cam_at(fp.R, fp.C), maps.gsd) if fp.ok else None
+            write_png(ov_dir / f"frame_{i:06d}.png", overlay(undistort(rgb), rend))
     timings["frames_s"] = time.perf_counter() - t0
     info["frames_per_second"] = len(per_frame_s) / max(sum(per_frame_s), 1e-9)
-    info["evaluation"] = _evaluate_set(poses, truth, model, key_idx)
-    _write_all(out, poses, maps, cloud, src, undistort, K, (w, h), zg, xyz_map, model, info, c,
-               timings, t_all)  # fmt: skip
+    info["evaluation"] = _evaluate_set(poses, truth, model, kf_frame)
+    points = (xyz_map, model.rgb, model.track_len, model.descriptors)
+    _write_outputs(out, poses, maps.crs_wkt, zg, points, info, int(c["look_every"]), timings, t_all)
     return poses
 
 
@@ -306,7 +313,7 @@ def _read_truth(path: str | None) -> dict[str, dict]:
     return {t["image"]: t for t in json.loads(Path(path).read_text())}
 
 
-def _evaluate_set(poses: list[dict], truth: dict, model, key_idx: list[int]) -> dict:
+def _evaluate_set(poses: list[dict], truth: dict, model, kf_frame: dict[str, int]) -> dict:
     """Mean / p90 errors over all frames (after and before ICP), keyframes only, and the Sim(3)
     scale against the truth (SfM keyframe centres aligned to the true centres by Umeyama)."""
     if not truth:
@@ -322,10 +329,10 @@ def _evaluate_set(poses: list[dict], truth: dict, model, key_idx: list[int]) -> 
         "keyframes_after_icp": _stats([p["evaluation"]["final"] for p in poses
                                        if p.get("keyframe") and "final" in p.get("evaluation", {})]),  # fmt: skip
     }
+    by_frame = {p["frame"]: p for p in poses}
     src, dst = [], []
     for nm, C in zip(model.names, model.C, strict=True):
-        i = int(nm[3:9])
-        p = next((q for q in poses if q["frame"] == i), None)
+        p = by_frame.get(kf_frame[nm])
         if p is not None and p["image"] in truth:
             src.append(C)
             dst.append(truth[p["image"]]["camera_center_xyz"])
@@ -334,56 +341,28 @@ def _evaluate_set(poses: list[dict], truth: dict, model, key_idx: list[int]) -> 
     return out
 
 
-def _write_all(out: Path, poses, maps: MapSources, cloud, src, undistort, K, size, zg, xyz_map,
-               model, info, c, timings, t_all) -> None:  # fmt: skip
+def _write_outputs(out: Path, poses: list[dict], crs: str, zg: float, points: tuple, info: dict,
+                   look_every: int, timings: dict, t_all: float) -> None:  # fmt: skip
+    """Trajectory CSV / GeoJSON / KML, the point map, trajectory.json, then poses.json."""
     from georeg.trajectory_outputs import write_csv, write_geojson, write_kml, write_point_map
 
-    w, h = size
-    reg = [p for p in poses if p["status"] == "registered"]
-    n_ov = int(c["overlays"])
-    pick = {reg[int(j)]["frame"] for j in np.linspace(0, len(reg) - 1, n_ov).round()} if reg and n_ov else set()
-    ov_dir = out / "overlays"
-    if ov_dir.exists():
-        shutil.rmtree(ov_dir)
-    ov_dir.mkdir(parents=True)
-    if pick:
-        by_frame = {p["frame"]: p for p in reg}
-        for i, _, rgb in src:
-            if i in pick:
-                p = by_frame[i]
-                cam = PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h,
-                                    np.asarray(p["R_world_to_cam"]), np.asarray(p["camera_center_xyz"]))  # fmt: skip
-                rend = display_render(cloud, cam, maps.gsd)
-                write_png(ov_dir / f"frame_{i:06d}.png", overlay(undistort(rgb), rend))
-    crs = maps.crs_wkt
     write_csv(out / "trajectory.csv", poses, crs)
-    write_geojson(out / "trajectory.geojson", poses, crs, zg, int(c["look_every"]))
-    write_kml(out / "trajectory.kml", poses, crs, zg, int(c["look_every"]))
-    write_point_map(out / "sfm_points.laz", xyz_map, model.rgb, model.track_len, model.descriptors, crs)
+    write_geojson(out / "trajectory.geojson", poses, crs, zg, look_every)
+    write_kml(out / "trajectory.kml", poses, crs, zg, look_every)
+    write_point_map(out / "sfm_points.laz", *points, crs)
     timings["total_s"] = time.perf_counter() - t_all
     info["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
-    from georeg.atomic import write_json
-
     write_json(out / "trajectory.json", info)
     write_poses(out / "poses.json", poses)
 
 
-def _write_not_found(out: Path, names: dict, fps: float, maps, info, c, timings, t_all) -> list[dict]:
+def _write_not_found(out: Path, names: dict, fps: float, crs: str, info: dict, timings: dict,
+                     t_all: float) -> list[dict]:  # fmt: skip
+    """Every frame ``not_found`` (no reconstruction, no anchor, no Sim(3)): the same outputs."""
     poses = [{"image": n, "frame": i, "time_s": round(i / fps, 4), "status": "not_found",
               "camera_center_xyz": None, "R_world_to_cam": None, "inliers": 0,
               "reprojection_px": None} for i, n in names.items()]  # fmt: skip
-    from georeg.atomic import write_json
-    from georeg.trajectory_outputs import write_csv, write_geojson, write_kml, write_point_map
-
     (out / "overlays").mkdir(parents=True, exist_ok=True)
-    crs = maps.crs_wkt
-    write_csv(out / "trajectory.csv", poses, crs)
-    write_geojson(out / "trajectory.geojson", poses, crs, 0.0)
-    write_kml(out / "trajectory.kml", poses, crs, 0.0)
-    write_point_map(out / "sfm_points.laz", np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0),
-                    np.zeros((0, 128)), crs)  # fmt: skip
-    timings["total_s"] = time.perf_counter() - t_all
-    info["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
-    write_json(out / "trajectory.json", info)
-    write_poses(out / "poses.json", poses)
+    empty = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 128)))
+    _write_outputs(out, poses, crs, 0.0, empty, info, 1, timings, t_all)
     return poses

@@ -27,6 +27,7 @@ import numpy as np
 import pyproj
 
 from georeg.atomic import atomic_path, write_text
+from georeg.frame_outputs import crs_urn
 
 
 def view_angles(R: np.ndarray) -> tuple[float, float, float]:
@@ -99,9 +100,9 @@ def write_geojson(path: str | Path, poses: list[dict], crs_wkt: str, z_ground: f
                       "geometry": {"type": "LineString", "coordinates": [C.tolist(), g.tolist()]}})  # fmt: skip
     fc: dict[str, Any] = {"type": "FeatureCollection", "features": feats,
                           "properties": {"crs_wkt": crs.to_wkt()}}  # fmt: skip
-    epsg = crs.to_epsg()
-    if epsg:
-        fc["crs"] = {"type": "name", "properties": {"name": f"urn:ogc:def:crs:EPSG::{epsg}"}}
+    urn = crs_urn(crs)
+    if urn:
+        fc["crs"] = {"type": "name", "properties": {"name": urn}}
     write_text(path, json.dumps(fc, indent=1))
 
 

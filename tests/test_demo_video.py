@@ -9,6 +9,7 @@ renderer that made the video.
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -23,14 +24,11 @@ CONF = {"n_frames": 40, "width": 320, "height": 240, "fx": 260.0}
 
 
 @pytest.fixture(scope="module")
-def demo_video(tmp_path_factory):
-    from georeg.demo import generate_scene
+def demo_video(tmp_path_factory, small_demo_map):
     from georeg.demo.video import generate_video
 
     tmp = tmp_path_factory.mktemp("video")
-    conf = {"seed": 7, "size_m": 640, "margin_m": 320, "lidar_tiles": 1,
-            "query": {"samples": 64, "lines": 64, "bands": 8}}  # fmt: skip
-    paths = generate_scene(conf, tmp / "demo")
+    paths = small_demo_map[1]
     truth = generate_video(paths["scene"], tmp / "video", CONF, seed=10)
     return tmp, paths, truth
 
@@ -78,7 +76,7 @@ def test_flight_is_smooth_inside_the_map_and_clear_of_buildings(demo_video):
     # off-nadir ~30 deg: the optical axis
     tilt = np.degrees(np.arccos(-R[:, 2, 2]))
     assert np.all(np.abs(tilt - 30.0) < 1.5)
-    scene = json.loads((tmp / "demo" / "scene.json").read_text())
+    scene = json.loads(Path(paths["scene"]).read_text())
     x0, y0, x1, y1 = scene["map"]["bounds"]
     with rasterio.open(paths["dtm"]) as dtm, rasterio.open(paths["dsm"]) as dsm:
         zg = np.array([z[0] for z in dtm.sample(C[:, :2])])
@@ -173,7 +171,7 @@ def test_flight_planning_is_seeded_and_checked(demo_video):
     from georeg.demo.video import Flight, generate_video, plan_flight, video_conf
 
     tmp, paths, truth = demo_video
-    world = World(json.loads((tmp / "demo" / "scene.json").read_text()))
+    world = World(json.loads(Path(paths["scene"]).read_text()))
     c, intr = video_conf(CONF)
     a = plan_flight(world, c, intr, np.random.default_rng(3))
     assert a == plan_flight(world, c, intr, np.random.default_rng(3))

@@ -253,11 +253,6 @@ def render_frame(world: World, cam: PinholeCamera, dist: list[float], rng: np.ra
     return camera_image(cloud, cam, Lens(cam, dist), rng)
 
 
-def rotation_error_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    c = (np.trace(np.asarray(Ra) @ np.asarray(Rb).T) - 1) / 2
-    return float(np.degrees(np.arccos(np.clip(c, -1, 1))))
-
-
 def generate_frames(scene_path: str | Path, outdir: str | Path, frames: list[dict] | None = None,
                     seed: int = 9, camera: dict | None = None) -> list[dict]:  # fmt: skip
     """Write ``outdir/<name>.png`` for each frame spec and ``outdir/truth.json``; returns the truth.
