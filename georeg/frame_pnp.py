@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from georeg.features import detect_and_describe
-from georeg.matching import _usac_params
+from georeg.matching import usac_params
 from georeg.render_points import PinholeCamera, PointCloud, render
 
 log = logging.getLogger(__name__)
@@ -67,7 +67,7 @@ def solve_pnp(xyz: np.ndarray, uv: np.ndarray, K: np.ndarray, reproj_px: float, 
     o = np.mean(xyz, axis=0) if origin is None else np.asarray(origin, float)
     obj = np.ascontiguousarray(xyz - o, np.float64)
     img = np.ascontiguousarray(uv, np.float64)
-    params = _usac_params("magsac", reproj_px, 0.9999, max_iters, seed)
+    params = usac_params("magsac", reproj_px, 0.9999, max_iters, seed)
     try:
         ok, _, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, params=params)
     except cv2.error as exc:

@@ -15,16 +15,22 @@ from georeg.errors import InputError
 log = logging.getLogger(__name__)
 
 
+def apply_h(H: np.ndarray, col: np.ndarray, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Map x, y of query pixels (col, row; any broadcastable arrays) through H; NaN behind the
+    horizon (w <= 0)."""
+    w = H[2, 0] * col + H[2, 1] * row + H[2, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = (H[0, 0] * col + H[0, 1] * row + H[0, 2]) / w
+        y = (H[1, 0] * col + H[1, 1] * row + H[1, 2]) / w
+    bad = w <= 0
+    return np.where(bad, np.nan, x), np.where(bad, np.nan, y)
+
+
 def map_xy(H: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """Map x, y (float64, (height, width)) of every query pixel centre (col, row) through H."""
     u = np.arange(width, dtype=np.float64)
     v = np.arange(height, dtype=np.float64)[:, None]
-    w = H[2, 0] * u + H[2, 1] * v + H[2, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x = (H[0, 0] * u + H[0, 1] * v + H[0, 2]) / w
-        y = (H[1, 0] * u + H[1, 1] * v + H[1, 2]) / w
-    bad = w <= 0
-    return np.where(bad, np.nan, x), np.where(bad, np.nan, y)
+    return apply_h(H, u, v)
 
 
 def sample_raster(path: str | Path, x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -245,6 +245,13 @@ def build_grid(
     }
 
 
+def _overlaps(ds: Any, crs: CRS, bounds: tuple[float, ...]) -> bool:
+    """Does the raster ``ds`` cover any of ``bounds`` (x0, y0, x1, y1 in ``crs``)?"""
+    sb = transform_bounds(crs, ds.crs, *bounds) if ds.crs != crs else bounds
+    b = ds.bounds
+    return not (sb[0] >= b.right or sb[2] <= b.left or sb[1] >= b.top or sb[3] <= b.bottom)
+
+
 def _valid_tiles(
     tiles: list[Tile], orthophotos: Sequence[str], crs: CRS, transform: Affine
 ) -> list[bool]:
@@ -259,13 +266,7 @@ def _valid_tiles(
                 tb = array_bounds(
                     th, tw, transform @ Affine.translation(t.window.col_off, t.window.row_off)
                 )
-                sb = transform_bounds(crs, ds.crs, *tb) if ds.crs != crs else tb
-                if (
-                    sb[0] >= ds.bounds.right
-                    or sb[2] <= ds.bounds.left
-                    or sb[1] >= ds.bounds.top
-                    or sb[3] <= ds.bounds.bottom
-                ):
+                if not _overlaps(ds, crs, tb):
                     continue
                 f = max(1, math.ceil(max(tw, th) / _CHECK_PX))
                 shape = (max(1, th // f), max(1, tw // f))
@@ -331,13 +332,7 @@ def make_ortho_tile(
     tb = grid.tile_bounds(t)
     for path in grid.orthophotos:
         with open_raster(path) as ds:
-            sb = transform_bounds(grid.crs, ds.crs, *tb) if ds.crs != grid.crs else tb
-            if (
-                sb[0] >= ds.bounds.right
-                or sb[2] <= ds.bounds.left
-                or sb[1] >= ds.bounds.top
-                or sb[3] <= ds.bounds.bottom
-            ):
+            if not _overlaps(ds, grid.crs, tb):
                 continue
             with on_grid(ds, grid.crs, tr, tw, th, Resampling[resampling]) as (src, win):
                 boundless = src is ds

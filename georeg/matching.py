@@ -169,27 +169,26 @@ _METHODS = {
 }
 
 
-def _usac_params(method: str, thr: float, conf: float, iters: int, seed: int) -> cv2.UsacParams:
+def usac_params(method: str, thr: float, conf: float, iters: int, seed: int) -> cv2.UsacParams:
+    """Seeded, single-threaded OpenCV USAC parameters: MAGSAC++ (``magsac``) or, otherwise, an
+    USAC_ACCURATE-like MSAC score with graph-cut local optimisation."""
     p = cv2.UsacParams()
     p.threshold = float(thr)
     p.confidence = float(conf)
     p.maxIterations = int(iters)
     p.randomGeneratorState = int(seed) & 0x7FFFFFFF
     p.isParallel = False
+    p.sampler = cv2.SAMPLING_UNIFORM
+    p.loIterations = 10
+    p.loSampleSize = 14
     if method in ("magsac", "usac_magsac"):
-        p.sampler = cv2.SAMPLING_UNIFORM
         p.score = cv2.SCORE_METHOD_MAGSAC
         p.loMethod = cv2.LOCAL_OPTIM_SIGMA
-        p.loIterations = 10
-        p.loSampleSize = 14
         p.final_polisher = cv2.MAGSAC
         p.final_polisher_iterations = 10
-    else:  # USAC_ACCURATE-like: MSAC score, graph-cut local optimisation
-        p.sampler = cv2.SAMPLING_UNIFORM
+    else:
         p.score = cv2.SCORE_METHOD_MSAC
         p.loMethod = cv2.LOCAL_OPTIM_GC
-        p.loIterations = 10
-        p.loSampleSize = 14
         p.final_polisher = cv2.LSQ_POLISHER
         p.final_polisher_iterations = 3
     return p
@@ -238,7 +237,7 @@ def fit_homography(
         try:
             if kind == "usac":
                 Hn, mask = cv2.findHomography(
-                    src, dst, _usac_params(method, thr, confidence, iters, rs)
+                    src, dst, usac_params(method, thr, confidence, iters, rs)
                 )
             else:
                 cv2.setRNGSeed(rs)

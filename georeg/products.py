@@ -17,11 +17,13 @@ manifest lists every file it vouches for.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
 import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -69,8 +71,15 @@ DEFAULTS: dict[str, Any] = {
 }
 
 
-def _gdal_env() -> dict[str, Any]:
-    return {} if GDAL_CACHE_MB is None else {"GDAL_CACHEMAX": GDAL_CACHE_MB}
+def _in_gdal_env(fn: Callable) -> Callable:
+    """Run ``fn`` inside a rasterio.Env with the products' GDAL cache bound."""
+
+    @functools.wraps(fn)
+    def wrapped(*args: Any, **kwargs: Any) -> Any:
+        with rasterio.Env(**({} if GDAL_CACHE_MB is None else {"GDAL_CACHEMAX": GDAL_CACHE_MB})):
+            return fn(*args, **kwargs)
+
+    return wrapped
 
 
 def merged_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
@@ -109,6 +118,7 @@ def _inverse(x: np.ndarray, y: np.ndarray, c: dict[str, Any]) -> InverseGeolocat
     return InverseGeolocation.build(x, y, step=int(c["inverse_step_px"]))
 
 
+@_in_gdal_env
 def make_cube(
     registration: str | os.PathLike,
     geolocation: str | os.PathLike,
@@ -120,21 +130,6 @@ def make_cube(
     threads: int = 1,
 ) -> dict[str, Any]:
     """Geo-referenced cube (COG + ENVI) on the product grid, and its manifest ``cube.json``."""
-    with rasterio.Env(**_gdal_env()):
-        return _make_cube(registration, geolocation, image, out_manifest, conf, map_raster, name,
-                          threads)  # fmt: skip
-
-
-def _make_cube(
-    registration: str | os.PathLike,
-    geolocation: str | os.PathLike,
-    image: str | os.PathLike,
-    out_manifest: str | os.PathLike,
-    conf: dict[str, Any] | None,
-    map_raster: str | os.PathLike | None,
-    name: str,
-    threads: int,
-) -> dict[str, Any]:
     c = merged_conf(conf)
     reg = read_registration(registration)
     if reg.get("status") != "registered":
@@ -224,6 +219,7 @@ def write_fused(
                 )
 
 
+@_in_gdal_env
 def make_products(
     registration: str | os.PathLike,
     geolocation: str | os.PathLike,
@@ -242,24 +238,6 @@ def make_products(
     ``labels``: optional truth class raster in query geometry (demo class codes, see
     ``segmentation.DEMO_TO_SEG``) to score the segmentation; the scores go into the manifest.
     """
-    with rasterio.Env(**_gdal_env()):
-        return _make_products(registration, geolocation, image, cube_manifest, mosaics,
-                              point_tiles, out_manifest, conf, grid_json, name, labels)  # fmt: skip
-
-
-def _make_products(
-    registration: str | os.PathLike,
-    geolocation: str | os.PathLike,
-    image: str | os.PathLike,
-    cube_manifest: str | os.PathLike,
-    mosaics: dict[str, str | os.PathLike],
-    point_tiles: list[str | os.PathLike],
-    out_manifest: str | os.PathLike,
-    conf: dict[str, Any] | None,
-    grid_json: str | os.PathLike | None,
-    name: str,
-    labels: str | os.PathLike | None,
-) -> dict[str, Any]:
     c = merged_conf(conf)
     reg = read_registration(registration)
     if reg.get("status") != "registered":

@@ -332,28 +332,27 @@ def open_raster(path: str | Path) -> RasterCube:
     """Open a rasterio-readable image; wavelengths come from band descriptions or band metadata."""
     import rasterio
 
+    from georeg.raster_io import open_raster as open_checked
+
     path = Path(path)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-            with rasterio.open(path) as src:
-                count, width, height = src.count, src.width, src.height
-                descs = list(src.descriptions)
-                nodata = src.nodata
-                wls: list[float | None] = []
-                for b in range(1, count + 1):
-                    tags = src.tags(b)
-                    w = wavelength_from_text(descs[b - 1])
-                    if w is None and "wavelength" in tags:
-                        try:
-                            v = float(tags["wavelength"])
-                            unit = tags.get("wavelength_units", "")
-                            w = v * _unit_scale(unit, np.array([v]))
-                        except ValueError:
-                            w = None
-                    wls.append(w)
-    except rasterio.errors.RasterioIOError as exc:
-        raise InputError(path, f"cannot open the image: {exc}") from exc
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        with open_checked(path, require_crs=False) as src:  # missing / unreadable: InputError
+            count, width, height = src.count, src.width, src.height
+            descs = list(src.descriptions)
+            nodata = src.nodata
+            wls: list[float | None] = []
+            for b in range(1, count + 1):
+                tags = src.tags(b)
+                w = wavelength_from_text(descs[b - 1])
+                if w is None and "wavelength" in tags:
+                    try:
+                        v = float(tags["wavelength"])
+                        unit = tags.get("wavelength_units", "")
+                        w = v * _unit_scale(unit, np.array([v]))
+                    except ValueError:
+                        w = None
+                wls.append(w)
     wl = np.array(wls, dtype=np.float64) if all(w is not None for w in wls) else None
     return RasterCube(
         path=path,

@@ -36,6 +36,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from georeg.geolocation import apply_h
+
 log = logging.getLogger(__name__)
 
 DEFAULTS: dict[str, Any] = {
@@ -478,15 +480,6 @@ def _stats(v: np.ndarray) -> dict[str, float | None]:
         "max": float(n.max()),
         "rms": float(np.sqrt(np.mean(n**2))),
     }
-
-
-def apply_h(H: np.ndarray, col: np.ndarray, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    w = H[2, 0] * col + H[2, 1] * row + H[2, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x = (H[0, 0] * col + H[0, 1] * row + H[0, 2]) / w
-        y = (H[1, 0] * col + H[1, 1] * row + H[1, 2]) / w
-    bad = w <= 0
-    return np.where(bad, np.nan, x), np.where(bad, np.nan, y)
 
 
 def refine(
