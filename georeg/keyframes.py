@@ -12,7 +12,7 @@ keyframes. Only the previous frame is held: memory does not grow with the video.
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -118,6 +118,15 @@ def keyframe_stats(
 ) -> list[Keyframe]:
     """The keyframes of ``frames`` (``(index, gray uint8)``, increasing indices), with why each
     was chosen and its overlap and baseline to the previous one."""
+    return list(iter_keyframes(frames, conf))
+
+
+def iter_keyframes(
+    frames: Iterable[tuple[int, np.ndarray]], conf: dict | None = None
+) -> Iterator[Keyframe]:
+    """``keyframe_stats`` as a stream: each keyframe is yielded as soon as it is decided, before
+    the next frame is pulled from ``frames`` (the last frame after the end), so a caller can keep
+    just the current frame and act on it."""
     keys: list[Keyframe] = []
     prev = tr = c = None
     scale, gap, last, seen = 1.0, 0, None, 0
@@ -155,16 +164,17 @@ def keyframe_stats(
         if reason is not None:
             tr = _Tracker(g, c, scale)
             keys.append(Keyframe(int(index), reason, len(tr.key), ov, base, gap))
+            yield keys[-1]
             log.debug("keyframe %d (%s): overlap %.2f, baseline %.1f px, %d features", index,
                       reason, ov, base, len(tr.key))  # fmt: skip
             gap = 0
         prev, last = g, (int(index), ov, base, gap)
     if last is not None and keys[-1].index != last[0]:
         keys.append(Keyframe(last[0], "last", 0, last[1], last[2], last[3]))
+        yield keys[-1]
     reasons = {r: sum(k.reason == r for k in keys) for r in dict.fromkeys(k.reason for k in keys)}
     log.info("keyframes: %d of %d frames (%s)", len(keys), seen,
              ", ".join(f"{r} {n}" for r, n in reasons.items()))  # fmt: skip
-    return keys
 
 
 def select_keyframes(

@@ -119,7 +119,7 @@ def georeference_video(frame_set: dict, maps: MapSources, frame_loc: dict, conf:
 def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict, out: Path,
                   work: Path, truth_path: str | None) -> list[dict]:  # fmt: skip
     from georeg.icp import icp_refine
-    from georeg.keyframes import select_keyframes
+    from georeg.keyframes import iter_keyframes
     from georeg.sfm import run_sfm
     from georeg.structure_projection import estimate_sfm_to_map
     from georeg.video_io import FrameSource
@@ -135,19 +135,25 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
     K, undistort = _undistorter(camera, (w, h))
     log.info("%s: %d frames of %d x %d at %.3g fps", src.video or "image list", len(src), w, h, fps)
 
-    # 1. keyframes (streamed), written undistorted for the SfM
+    # 1. keyframes (streamed: one decode; each written undistorted for the SfM when decided)
     t0 = time.perf_counter()
-    key_idx = select_keyframes(((i, _gray(undistort(rgb))) for i, _, rgb in src), c["keyframes"])
     kf_dir = work / "keyframes"
     if kf_dir.exists():
         shutil.rmtree(kf_dir)
     kf_dir.mkdir(parents=True)
-    wanted = set(key_idx)
     names: dict[int, str] = {}
-    for i, name, rgb in src:
-        names[i] = name
-        if i in wanted:
-            cv2.imwrite(str(kf_dir / _kf_name(i)), cv2.cvtColor(undistort(rgb), cv2.COLOR_RGB2BGR))
+    current: dict[str, np.ndarray] = {}
+
+    def gray_frames():
+        for i, name, rgb in src:
+            names[i] = name
+            current["rgb"] = undistort(rgb)
+            yield i, _gray(current["rgb"])
+
+    key_idx = []
+    for k in iter_keyframes(gray_frames(), c["keyframes"]):  # current = keyframe k's frame
+        key_idx.append(k.index)
+        cv2.imwrite(str(kf_dir / _kf_name(k.index)), cv2.cvtColor(current["rgb"], cv2.COLOR_RGB2BGR))
     timings["keyframes_s"] = time.perf_counter() - t0
     log.info("%d keyframes of %d frames (%.1f s)", len(key_idx), len(names), timings["keyframes_s"])
 

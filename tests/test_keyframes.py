@@ -69,3 +69,24 @@ def test_indices_are_kept_and_must_increase():
     assert select_keyframes([]) == []
     with pytest.raises(ValueError, match="increase"):
         select_keyframes([(3, frames[0][1]), (3, frames[1][1])])
+
+
+def test_stream_yields_each_keyframe_before_the_next_frame_is_read():
+    """iter_keyframes: a keyframe comes out while its frame is the latest one read (the
+    trajectory writes it then, without a second pass over the video)."""
+    from georeg.keyframes import iter_keyframes
+
+    pulled: list[int] = []
+
+    def frames():
+        for i, g in _pan(60):
+            pulled.append(i)
+            yield i, g
+
+    conf = {"min_overlap": 0.65, "max_baseline_px": 1e6, "min_baseline_px": 0, "max_gap": 1000}
+    streamed = []
+    for k in iter_keyframes(frames(), conf):
+        assert k.index == pulled[-1]
+        streamed.append(k.index)
+    assert streamed == [k.index for k in keyframe_stats(_pan(60), conf)]
+    assert streamed[-1] == 59
