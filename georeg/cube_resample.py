@@ -33,6 +33,7 @@ from rasterio.transform import Affine
 from georeg.atomic import atomic_path
 from georeg.errors import InputError
 from georeg.query_io import Cube, EnviCube, RasterCube
+from georeg.raster_io import tiled_profile
 
 log = logging.getLogger(__name__)
 
@@ -537,24 +538,8 @@ def resample_cube(
         mx = np.where(valid, col, -10.0).astype(np.float32)
         my = np.where(valid, row, -10.0).astype(np.float32)
     out_tif = Path(out_tif)
-    profile = {
-        "driver": "GTiff",
-        "width": grid.width,
-        "height": grid.height,
-        "count": cube.count,
-        "dtype": dtype.name,
-        "crs": CRS.from_wkt(grid.crs_wkt),
-        "transform": grid.transform,
-        "nodata": nodata,
-        "tiled": True,
-        "blockxsize": 256,
-        "blockysize": 256,
-        "interleave": "band",
-        "compress": "deflate",
-        "zlevel": 1,
-        "predictor": 3 if dtype.kind == "f" else 2,
-        "BIGTIFF": "IF_SAFER",
-    }
+    profile = {**tiled_profile(grid.width, grid.height, cube.count, dtype, nodata),
+               "crs": CRS.from_wkt(grid.crs_wkt), "transform": grid.transform, "zlevel": 1}  # fmt: skip
     labels = band_labels(cube)
     tmp_gtiff = out_tif.with_name(f".{out_tif.stem}.stage-{os.getpid()}.tif")
     try:

@@ -23,6 +23,7 @@ from rasterio.crs import CRS
 
 from georeg.atomic import atomic_path
 from georeg.geolocation import sample_raster
+from georeg.raster_io import tiled_profile
 
 log = logging.getLogger(__name__)
 
@@ -59,26 +60,6 @@ def gcps_from_geolocation(
     return out
 
 
-def query_profile(width: int, height: int, count: int, dtype: str, nodata: float | None) -> dict:
-    """GeoTIFF profile for a query-geometry product (tiled, deflate, no geotransform)."""
-    dt = np.dtype(dtype)
-    return {
-        "driver": "GTiff",
-        "width": width,
-        "height": height,
-        "count": count,
-        "dtype": dt.name,
-        "nodata": nodata,
-        "tiled": True,
-        "blockxsize": 256,
-        "blockysize": 256,
-        "interleave": "band",
-        "compress": "deflate",
-        "predictor": 3 if dt.kind == "f" else 2,
-        "BIGTIFF": "IF_SAFER",
-    }
-
-
 def open_query_raster(
     path: str | os.PathLike,
     width: int,
@@ -91,7 +72,7 @@ def open_query_raster(
     crs_wkt: str | None,
 ):
     """Open a query-geometry GeoTIFF for writing (caller writes windows, then closes)."""
-    ds = rasterio.open(path, "w", **query_profile(width, height, count, dtype, nodata))
+    ds = rasterio.open(path, "w", **tiled_profile(width, height, count, dtype, nodata))
     for i, d in enumerate(descriptions, start=1):
         ds.set_band_description(i, d)
     if gcps and crs_wkt:

@@ -59,6 +59,28 @@ def open_raster(path: str | os.PathLike, require_crs: bool = True) -> Iterator[D
         ds.close()
 
 
+def tiled_profile(width: int, height: int, count: int, dtype: str | np.dtype,
+                  nodata: float | None) -> dict:  # fmt: skip
+    """GeoTIFF profile of a georeg product: 256 px tiles, band interleave, deflate with the
+    predictor of the data type, BigTIFF when needed (add ``crs``/``transform`` if geo-referenced)."""
+    dt = np.dtype(dtype)
+    return {
+        "driver": "GTiff",
+        "width": width,
+        "height": height,
+        "count": count,
+        "dtype": dt.name,
+        "nodata": nodata,
+        "tiled": True,
+        "blockxsize": 256,
+        "blockysize": 256,
+        "interleave": "band",
+        "compress": "deflate",
+        "predictor": 3 if dt.kind == "f" else 2,
+        "BIGTIFF": "IF_SAFER",
+    }
+
+
 def read(
     ds: DatasetReader | WarpedVRT,
     window: Window | None = None,
