@@ -12,7 +12,7 @@ is the RGB luminance of the other date (Landsat: either direction; Sentinel-2: d
 comes from the geo-referencing of both dates. Unrelated pairs (a query of one scene against the
 map of another) must come out not found. Each candidate matches the query against the whole map
 (one candidate region; the search strategy is not what is measured here) and decides with the
-project's acceptance (georeg.acceptance: NFA + plausibility + collinearity).
+project's acceptance (georeg.register.acceptance: NFA + plausibility + collinearity).
 
 Outcome per query: success = accepted with median error <= 5 map pixels over the query; false
 accept = accepted with a larger error, or any acceptance of an unrelated pair; missed = not
@@ -40,8 +40,8 @@ sys.path.insert(0, str(ROOT))
 SHARED = ROOT.parent / "shared" / "data"
 DATES = SHARED / "swir_dates"
 
-from georeg import acceptance, crossspectral, matching  # noqa: E402
-from georeg.features import detect_and_describe, merged_conf, resample  # noqa: E402
+from georeg.index.features import detect_and_describe, merged_conf, resample  # noqa: E402
+from georeg.register import acceptance, crossspectral, matching  # noqa: E402
 
 SUCCESS_PX = 5.0
 
@@ -75,7 +75,7 @@ def _lum(r: np.ndarray, g: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def landsat_scene(city: str, query_date: int) -> Scene:
-    from georeg.query_io import open_query
+    from georeg.io.query import open_query
 
     d = DATES / f"landsat_{city}"
     cubes = sorted(p for p in d.iterdir() if p.suffix.lower() not in (".hdr",))

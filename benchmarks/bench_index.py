@@ -50,7 +50,7 @@ def emit(rec: dict) -> None:
 def autzen_gray() -> tuple[np.ndarray, object]:
     import rasterio
 
-    from georeg.features import rgb_to_gray
+    from georeg.index.features import rgb_to_gray
 
     with rasterio.open(AUTZEN) as ds:
         return rgb_to_gray(ds.read()), ds.transform
@@ -114,9 +114,9 @@ def bench_throughput(args: argparse.Namespace) -> None:
     import cv2
     import faiss
 
-    from georeg.features import extract_tile_from_grid, merged_conf, read_ortho_gray
-    from georeg.index import build_from_grid
-    from georeg.vocabulary import build_vocabulary
+    from georeg.index.features import extract_tile_from_grid, merged_conf, read_ortho_gray
+    from georeg.index.map_index import build_from_grid
+    from georeg.index.vocabulary import build_vocabulary
 
     cv2.setNumThreads(1)
     faiss.omp_set_num_threads(1)
@@ -211,7 +211,7 @@ def descriptor_pool(n: int, seed: int = 0) -> np.ndarray:
         return np.load(cache)
     import cv2
 
-    from georeg.features import detect_and_describe, merged_conf
+    from georeg.index.features import detect_and_describe, merged_conf
 
     gray, _ = autzen_gray()
     conf = merged_conf({"max_features_per_mpx": None, "sift": {"contrast_threshold": 0.02}})
@@ -250,7 +250,7 @@ def heldout_descriptors() -> np.ndarray:
         return np.load(cache)
     import cv2
 
-    from georeg.features import detect_and_describe, merged_conf
+    from georeg.index.features import detect_and_describe, merged_conf
 
     gray, _ = autzen_gray()
     h, w = gray.shape
@@ -264,7 +264,7 @@ def heldout_descriptors() -> np.ndarray:
 
 def bench_kmeans(args: argparse.Namespace) -> None:
     """One k-means run (meant to be run in its own process so that peak memory is its own)."""
-    from georeg.vocabulary import quantization_error, train_kmeans
+    from georeg.index.vocabulary import quantization_error, train_kmeans
 
     x = descriptor_pool(args.n)
     rss0 = peak_rss_mb()
@@ -295,9 +295,14 @@ def bench_backends(args: argparse.Namespace) -> None:
     import cv2
     from rasterio.transform import Affine
 
-    from georeg.features import detect_and_describe, merged_conf, save_tile_features, tile_features
-    from georeg.index import MapIndex
-    from georeg.vocabulary import quantization_error, sample_descriptors, train_kmeans
+    from georeg.index.features import (
+        detect_and_describe,
+        merged_conf,
+        save_tile_features,
+        tile_features,
+    )
+    from georeg.index.map_index import MapIndex
+    from georeg.index.vocabulary import quantization_error, sample_descriptors, train_kmeans
 
     gray, tr = autzen_gray()
     conf = merged_conf({})
@@ -369,7 +374,7 @@ def bench_quantizer(args: argparse.Namespace) -> None:
     """Nearest-word search over k centroids: exact flat vs HNSW vs FLANN kd-tree."""
     import faiss
 
-    from georeg.index import WordQuantizer
+    from georeg.index.map_index import WordQuantizer
 
     faiss.omp_set_num_threads(args.threads)
     pool = descriptor_pool(args.n)
@@ -408,7 +413,7 @@ import json, os, sys, time
 import faiss
 faiss.omp_set_num_threads(1)
 sys.path.insert(0, {root!r})
-from georeg import index as I
+from georeg.index import map_index as I
 t0, c0 = time.perf_counter(), os.times()
 {body}
 c1 = os.times()
@@ -444,9 +449,9 @@ def bench_words(args: argparse.Namespace) -> None:
     """
     import cv2
 
-    from georeg.features import dequantize, extract_tile_from_grid, merged_conf
-    from georeg.index import INDEX_ARRAYS
-    from georeg.vocabulary import build_vocabulary
+    from georeg.index.features import dequantize, extract_tile_from_grid, merged_conf
+    from georeg.index.map_index import INDEX_ARRAYS
+    from georeg.index.vocabulary import build_vocabulary
 
     cv2.setNumThreads(1)
     tmp = Path(tempfile.mkdtemp(prefix="bench_words_"))

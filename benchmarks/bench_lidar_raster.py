@@ -40,7 +40,7 @@ def _grid(size_px: int = 2048):
     from rasterio.crs import CRS
     from rasterio.transform import from_origin
 
-    from georeg.elevation import Grid
+    from georeg.map.elevation import Grid
 
     return Grid(CRS.from_epsg(32611), from_origin(500_000, 3_760_000, 1.0, 1.0), size_px, size_px)
 
@@ -62,7 +62,7 @@ def _rss_mb() -> float:
 
 
 def case_raster(n_total: int) -> dict:
-    from georeg.elevation import GridAccumulator, surfaces_from_accumulator
+    from georeg.map.elevation import GridAccumulator, surfaces_from_accumulator
 
     grid = _grid()
     t_add = 0.0
@@ -89,7 +89,7 @@ def case_tile() -> dict:
     from rasterio.crs import CRS as RCRS
     from rasterio.transform import from_origin
 
-    from georeg.elevation import Grid, lidar_tile
+    from georeg.map.elevation import Grid, lidar_tile
 
     size = 1024
     margin = 20.0
@@ -160,7 +160,7 @@ def write_section(results: list[dict], runs: int, load: tuple[float, float]) -> 
     lines = [
         SECTION,
         "",
-        "Rule `map_tile_elevation` (`georeg/elevation.py`, `georeg/lidar.py`). Reproduce with",
+        "Rule `map_tile_elevation` (`georeg/map/elevation.py`, `georeg/map/lidar.py`). Reproduce with",
         "`python benchmarks/bench_lidar_raster.py` (about 5 minutes on 2 cores; rewrites this section).",
         f"Machine: {platform.processor() or platform.machine()}, Python "
         f"{platform.python_version()}, {time.strftime('%Y-%m-%d')}; median of {runs} runs, each "

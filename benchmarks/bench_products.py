@@ -27,9 +27,9 @@ import numpy as np
 import pyproj
 import rasterio
 
-from georeg import lidar
-from georeg.geolocation import sample_raster
-from georeg.products import make_cube, make_products
+from georeg.map import lidar
+from georeg.products.make import make_cube, make_products
+from georeg.register.geolocation import sample_raster
 
 
 class MemSampler:

@@ -44,11 +44,11 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-import georeg.sfm  # noqa: E402
-import georeg.trajectory as traj  # noqa: E402
-from georeg.frame_localize import MapSources  # noqa: E402
-from georeg.relocalize import FramePose, Tracker  # noqa: E402
-from georeg.sim3 import umeyama  # noqa: E402
+import georeg.trajectory.pipeline as traj  # noqa: E402
+import georeg.trajectory.sfm  # noqa: E402
+from georeg.frames.localize import MapSources  # noqa: E402
+from georeg.trajectory.relocalize import FramePose, Tracker  # noqa: E402
+from georeg.trajectory.sim3 import umeyama  # noqa: E402
 
 STAGES = ("keyframes_s", "sfm_s", "anchors_s", "sim3_s", "icp_s", "frames_s", "total_s")
 METRICS = ("position_m", "horizontal_m", "vertical_m", "rotation_deg")
@@ -65,7 +65,7 @@ class Reuse:
         self.enabled = False
         self.sfm: dict[str, Any] = {}
         self.loc: dict[str, Any] = {}
-        self._run_sfm = georeg.sfm.run_sfm
+        self._run_sfm = georeg.trajectory.sfm.run_sfm
         self._localize = traj.localize_image
 
     @staticmethod
@@ -95,7 +95,7 @@ class Reuse:
         return out
 
     def install(self) -> None:
-        georeg.sfm.run_sfm = self.run_sfm  # georeg.trajectory imports it at call time
+        georeg.trajectory.sfm.run_sfm = self.run_sfm  # georeg.trajectory.pipeline imports it at call time
         traj.localize_image = self.localize_image
 
 

@@ -6,10 +6,10 @@
     python benchmarks/run.py --only demo,inverted --strategies index
 
 Each scenario is a query band + a map with a known truth (true map x, y per query pixel). The
-map's features, vocabulary and index are built here with the library (georeg.features,
-georeg.vocabulary, georeg.index; cached under results/benchmark/cache/), the query is split into
-parts searched with georeg.search and fused with georeg.fuse, exactly as the workflow does, and
-the result is judged with georeg.evaluation. Output: results/benchmark/summary.csv (one row per
+map's features, vocabulary and index are built here with the library (georeg.index.features,
+georeg.index.vocabulary, georeg.index.map_index; cached under results/benchmark/cache/), the query is split into
+parts searched with georeg.register.search and fused with georeg.register.fuse, exactly as the workflow does, and
+the result is judged with georeg.report.evaluation. Output: results/benchmark/summary.csv (one row per
 scenario, the strategies side by side) and summary.json (everything), which the report shows.
 """
 
@@ -36,7 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 SHARED = ROOT.parent / "shared" / "data"
 
-from georeg.evaluation import classify, error_field, error_stats, inside_fraction  # noqa: E402
+from georeg.report.evaluation import classify, error_field, error_stats, inside_fraction  # noqa: E402
 
 log = logging.getLogger("benchmark")
 
@@ -80,7 +80,7 @@ def _read(path: Path) -> Any:
 
 
 def _stretch(a: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    from georeg.band import stretch_uint8
+    from georeg.register.band import stretch_uint8
 
     return stretch_uint8(a.astype(np.float32), valid)[0]
 
@@ -106,7 +106,7 @@ def demo_dir(cache: Path) -> Path:
 
 def load_map(spec: dict[str, Any], cache: Path) -> MapImage:
     """The map image of a `maps:` entry (optionally cropped to a fraction of its width)."""
-    from georeg.features import rgb_to_gray
+    from georeg.index.features import rgb_to_gray
 
     src = spec["source"]
     if src == "demo":
@@ -152,9 +152,9 @@ def _landsat(city: str, date: int) -> Path:
 
 def load_base(name: str, cache: Path, rng: np.random.Generator) -> Query:
     """The base query of a scenario (before the warp)."""
-    from georeg.band import select_band, stretch_uint8
-    from georeg.evaluation import read_truth
-    from georeg.query_io import open_query
+    from georeg.io.query import open_query
+    from georeg.register.band import select_band, stretch_uint8
+    from georeg.report.evaluation import read_truth
 
     if name in ("demo", "outside"):
         d = demo_dir(cache) / "queries"
@@ -240,7 +240,7 @@ def apply_warp(q: Query, warp: dict[str, Any] | None, rng: np.random.Generator) 
 
 def _warp_truth64(tx: np.ndarray, ty: np.ndarray, M: np.ndarray, shape: tuple[int, int]):
     """Truth of the warped query in float64: bilinear in the source truth at M^-1 positions."""
-    from georeg.features import sample_bilinear
+    from georeg.index.features import sample_bilinear
 
     Mi = cv2.invertAffineTransform(M)
     nh, nw = shape
@@ -282,10 +282,10 @@ def build_source(
     name: str, m: MapImage, spec: dict[str, Any], features_conf: dict, cache: Path, seed: int
 ) -> Any:
     """Tile the map, extract features, train the vocabulary, build the index (cached)."""
-    from georeg.features import save_tile_features, tile_features
-    from georeg.index import MapIndex
-    from georeg.search import MapSource
-    from georeg.vocabulary import sample_descriptors, train_kmeans
+    from georeg.index.features import save_tile_features, tile_features
+    from georeg.index.map_index import MapIndex
+    from georeg.index.vocabulary import sample_descriptors, train_kmeans
+    from georeg.register.search import MapSource
 
     key = hashlib.sha1(
         json.dumps(
@@ -353,9 +353,9 @@ def build_source(
 
 def register(q: Query, source: Any, conf: dict[str, Any], seed: int) -> dict[str, Any]:
     """Parts searched one after the other (as the workflow's jobs would), then fused."""
-    from georeg.band import feature_scales
-    from georeg.fuse import fuse
-    from georeg.search import part_rows, query_features, search_part
+    from georeg.register.band import feature_scales
+    from georeg.register.fuse import fuse
+    from georeg.register.search import part_rows, query_features, search_part
 
     t0 = time.perf_counter()
     factors = feature_scales(q.gsd_m, source.gsd_m, conf.get("unknown_gsd_factors", [1.0]))
@@ -379,7 +379,7 @@ def register(q: Query, source: Any, conf: dict[str, Any], seed: int) -> dict[str
 
 def evaluate(q: Query, fused: dict[str, Any], map_bounds, map_px: float, rconf) -> dict[str, Any]:
     """Outcome and error of one registration against the query's truth."""
-    from georeg.geolocation import map_xy
+    from georeg.register.geolocation import map_xy
 
     ok = fused.get("status") == "registered" and fused.get("homography") is not None
     inside = inside_fraction(q.tx, q.ty, map_bounds)
@@ -430,18 +430,18 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s"
     )
     for noisy in (
-        "georeg.search",
-        "georeg.fuse",
-        "georeg.matching",
-        "georeg.index",
-        "georeg.vocabulary",
-        "georeg.features",
+        "georeg.register.search",
+        "georeg.register.fuse",
+        "georeg.register.matching",
+        "georeg.index.map_index",
+        "georeg.index.vocabulary",
+        "georeg.index.features",
     ):
         logging.getLogger(noisy).setLevel(logging.WARNING)
     spec = yaml.safe_load(Path(args.scenarios).read_text())
     cfg = workflow_defaults()
     conf = merged(cfg["register"], spec.get("register") or {})
-    from georeg.features import merged_conf
+    from georeg.index.features import merged_conf
 
     features_conf = merged_conf(cfg["features"])
     rconf = merged(cfg.get("report") or {}, spec.get("report") or {})
@@ -525,7 +525,7 @@ def main(argv: list[str] | None = None) -> int:
         ]
     cols.append("note")
     out.mkdir(parents=True, exist_ok=True)
-    from georeg.atomic import atomic_path, write_json
+    from georeg.io.atomic import atomic_path, write_json
 
     with atomic_path(out / "summary.csv") as tmp, tmp.open("w", newline="") as f:
         w = csv.DictWriter(f, cols, extrasaction="ignore", lineterminator="\n")

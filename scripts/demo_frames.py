@@ -3,7 +3,7 @@
 from pathlib import Path
 
 from georeg.demo.frames import generate_frames
-from georeg.scripting import run
+from georeg.io.scripting import run
 
 
 def main(smk):

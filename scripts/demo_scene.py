@@ -3,6 +3,6 @@
 from pathlib import Path
 
 from georeg.demo import generate_scene
-from georeg.scripting import run
+from georeg.io.scripting import run
 
 run(snakemake, lambda sm: generate_scene(sm.params.conf, Path(sm.output.orthophoto).parent))  # noqa: F821

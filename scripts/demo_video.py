@@ -3,8 +3,8 @@
 from pathlib import Path
 
 from georeg.demo.video import generate_video
-from georeg.errors import ConfigError
-from georeg.scripting import run
+from georeg.io.errors import ConfigError
+from georeg.io.scripting import run
 
 
 def main(smk):

@@ -2,8 +2,8 @@
 
 from pathlib import Path
 
-from georeg.index import build_from_grid
-from georeg.scripting import run
+from georeg.index.map_index import build_from_grid
+from georeg.io.scripting import run
 
 
 def main(smk):

@@ -2,8 +2,8 @@
 
 import cv2
 
-from georeg.features import extract_tile_from_grid
-from georeg.scripting import run
+from georeg.index.features import extract_tile_from_grid
+from georeg.io.scripting import run
 
 
 def main(smk):

@@ -2,8 +2,8 @@
 
 import faiss
 
-from georeg.index import assign_tile_words
-from georeg.scripting import run
+from georeg.index.map_index import assign_tile_words
+from georeg.io.scripting import run
 
 
 def main(smk):

@@ -2,8 +2,8 @@
 
 from pathlib import Path
 
-from georeg.scripting import run
-from georeg.vocabulary import build_vocabulary
+from georeg.index.vocabulary import build_vocabulary
+from georeg.io.scripting import run
 
 
 def main(smk):

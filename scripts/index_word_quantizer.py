@@ -1,7 +1,7 @@
 """Rule word_quantizer: the vocabulary's nearest-word structure (flat or HNSW), built once."""
 
-from georeg.index import save_word_quantizer
-from georeg.scripting import run
+from georeg.index.map_index import save_word_quantizer
+from georeg.io.scripting import run
 
 
 def main(smk):

@@ -1,7 +1,7 @@
 """Rule map_grid (checkpoint): the tile grid over the union of the orthophotos."""
 
-from georeg.mapgrid import write_grid
-from georeg.scripting import run
+from georeg.io.scripting import run
+from georeg.map.grid import write_grid
 
 
 def main(smk):

@@ -1,7 +1,7 @@
 """Rule map_mosaic: a hand-written GDAL VRT of one layer over all tiles (tile cores)."""
 
-from georeg.mapgrid import write_mosaic
-from georeg.scripting import run
+from georeg.io.scripting import run
+from georeg.map.grid import write_mosaic
 
 
 def main(smk):

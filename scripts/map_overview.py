@@ -1,7 +1,7 @@
 """Rule map_overview: quicklook PNG (orthophoto + tile grid, hillshaded DSM)."""
 
-from georeg.overview import make_overview
-from georeg.scripting import run
+from georeg.io.scripting import run
+from georeg.map.overview import make_overview
 
 
 def main(smk):

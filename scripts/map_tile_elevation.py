@@ -1,7 +1,7 @@
 """Rule map_tile_elevation: DSM/DTM/nDSM/density and textured points of one tile (LiDAR or DEM)."""
 
-from georeg.elevation import make_elevation_tile
-from georeg.scripting import run
+from georeg.io.scripting import run
+from georeg.map.elevation import make_elevation_tile
 
 
 def main(smk):

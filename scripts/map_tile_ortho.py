@@ -1,7 +1,7 @@
 """Rule map_tile_ortho: one orthophoto tile as a COG, mosaicked from the overlapping sources."""
 
-from georeg.mapgrid import make_ortho_tile
-from georeg.scripting import run
+from georeg.io.scripting import run
+from georeg.map.grid import make_ortho_tile
 
 
 def main(smk):

@@ -1,7 +1,7 @@
 """Rule products_cube: the query cube resampled onto a north-up map-CRS grid (COG + ENVI)."""
 
-from georeg.products import make_cube
-from georeg.scripting import run
+from georeg.io.scripting import run
+from georeg.products.make import make_cube
 
 
 def main(smk):

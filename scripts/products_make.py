@@ -1,7 +1,7 @@
 """Rule products: elevation, fused product, segmentation, footprint, spectral point cloud."""
 
-from georeg.products import make_products
-from georeg.scripting import run
+from georeg.io.scripting import run
+from georeg.products.make import make_products
 
 
 def main(smk):

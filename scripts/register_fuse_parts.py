@@ -1,7 +1,7 @@
 """Rule fuse_parts: fuse the parts into one registration; write geolocation.tif."""
 
-from georeg.fuse import run_fuse_parts
-from georeg.scripting import run
+from georeg.io.scripting import run
+from georeg.register.fuse import run_fuse_parts
 
 
 def main(smk):

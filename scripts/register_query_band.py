@@ -1,7 +1,7 @@
 """Rule query_band: select, mask and stretch the query band (band.tif + band.json)."""
 
-from georeg.band import write_query_band
-from georeg.scripting import run
+from georeg.io.scripting import run
+from georeg.register.band import write_query_band
 
 
 def main(smk):

@@ -1,7 +1,7 @@
 """Rule refine_registration: sub-pixel local refinement; write registration.json + geolocation.tif."""
 
-from georeg.refine import run_refine
-from georeg.scripting import run
+from georeg.io.scripting import run
+from georeg.register.refine import run_refine
 
 
 def main(smk):

@@ -1,7 +1,7 @@
 """Rule search_part: search the map for one along-track part of the query."""
 
-from georeg.scripting import run
-from georeg.search import run_search_part
+from georeg.io.scripting import run
+from georeg.register.search import run_search_part
 
 
 def main(smk):

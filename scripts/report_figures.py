@@ -1,7 +1,7 @@
 """Rule report_figures: every figure of one query, plus figures.json (titles, captions)."""
 
-from georeg.figures import load_query_data, make_query_figures
-from georeg.scripting import run
+from georeg.io.scripting import run
+from georeg.report.figures import load_query_data, make_query_figures
 
 
 def main(smk):

@@ -1,7 +1,7 @@
 """Rule report_html: the self-contained results/report/index.html and summary.csv."""
 
-from georeg.report import run_report
-from georeg.scripting import run
+from georeg.io.scripting import run
+from georeg.report.html import run_report
 
 
 def main(smk):

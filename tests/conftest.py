@@ -33,11 +33,11 @@ def small_demo_map(tmp_path_factory):
     import numpy as np
 
     from georeg.demo import generate_scene
-    from georeg.elevation import LAYERS, make_elevation_tile
-    from georeg.features import extract_tile_from_grid
-    from georeg.index import MapIndex
-    from georeg.mapgrid import make_ortho_tile, write_grid
-    from georeg.vocabulary import build_vocabulary
+    from georeg.index.features import extract_tile_from_grid
+    from georeg.index.map_index import MapIndex
+    from georeg.index.vocabulary import build_vocabulary
+    from georeg.map.elevation import LAYERS, make_elevation_tile
+    from georeg.map.grid import make_ortho_tile, write_grid
 
     tmp = tmp_path_factory.mktemp("small_demo_map")
     conf = {"seed": 7, "size_m": 640, "margin_m": 320, "lidar_tiles": 1,

@@ -8,8 +8,8 @@ import sys
 
 import pytest
 
-from georeg.atomic import atomic_path, write_json
-from georeg.errors import InputError
+from georeg.io.atomic import atomic_path, write_json
+from georeg.io.errors import InputError
 
 
 def test_atomic_path_renames_on_success(tmp_path):
@@ -45,8 +45,8 @@ def test_input_error_names_file():
 def test_run_reports_one_line_and_exits_1(tmp_path):
     code = (
         "from types import SimpleNamespace\n"
-        "from georeg.scripting import run\n"
-        "from georeg.errors import InputError\n"
+        "from georeg.io.scripting import run\n"
+        "from georeg.io.errors import InputError\n"
         f"sm = SimpleNamespace(log=[{str(tmp_path / 'r.log')!r}], rule='demo')\n"
         "def main(sm):\n"
         "    raise InputError('q.hdr', 'wavelength 3000 nm is outside the cube (900-2500 nm)')\n"

@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 import pytest
 
-from georeg import crossspectral, matching, search
-from georeg.features import detect_and_describe
+from georeg.index.features import detect_and_describe
+from georeg.register import crossspectral, matching, search
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "swir_dates"
 CONF = {
@@ -49,7 +49,7 @@ def _stretch(a: np.ndarray) -> np.ndarray:
 
 
 def _landsat(city: str, k: int):
-    from georeg.query_io import open_query
+    from georeg.io.query import open_query
 
     d = DATA / f"landsat_{city}"
     cubes = sorted(p for p in d.iterdir() if p.suffix.lower() != ".hdr")

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 import rasterio
 
-from georeg.errors import ConfigError
-from georeg.render_points import PinholeCamera, read_heightfield, render
-from georeg.video_io import FrameSource
+from georeg.frames.render import PinholeCamera, read_heightfield, render
+from georeg.io.errors import ConfigError
+from georeg.io.video import FrameSource
 
 CONF = {"n_frames": 40, "width": 320, "height": 240, "fx": 260.0}
 
@@ -154,7 +154,7 @@ def test_tracked_features_follow_the_truth_poses(demo_video):
 
 
 def test_keyframes_of_the_demo_video(demo_video):
-    from georeg.keyframes import keyframe_stats
+    from georeg.trajectory.keyframes import keyframe_stats
 
     tmp, _, truth = demo_video
     keys = keyframe_stats(FrameSource(tmp / "video" / "flight.mp4").gray())
@@ -190,7 +190,7 @@ def test_flight_planning_is_seeded_and_checked(demo_video):
 
 def test_cloud_blocks_keep_every_point_in_view():
     from georeg.demo.video import CloudBlocks
-    from georeg.render_points import PointCloud, pose_from_angles
+    from georeg.frames.render import PointCloud, pose_from_angles
 
     rng = np.random.default_rng(0)
     xyz = np.c_[rng.uniform(0, 300, (20000, 2)), rng.uniform(0, 20, 20000)]

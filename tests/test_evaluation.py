@@ -11,7 +11,7 @@ import pytest
 import rasterio
 from rasterio.transform import Affine
 
-from georeg.evaluation import (
+from georeg.report.evaluation import (
     classify,
     error_field,
     error_stats,
@@ -41,7 +41,7 @@ def shifted(H: np.ndarray, dx: float, dy: float = 0.0) -> np.ndarray:
 
 
 def write_truth(path: Path, H: np.ndarray, width: int = W, height: int = H_) -> Path:
-    from georeg.geolocation import map_xy
+    from georeg.register.geolocation import map_xy
 
     x, y = map_xy(H, width, height)
     x[:2, :2] = np.nan  # a few pixels without truth
@@ -183,7 +183,7 @@ def test_evaluate_without_truth_and_run(tmp_path: Path) -> None:
 
 
 def test_evaluate_uses_geolocation_raster(tmp_path: Path) -> None:
-    from georeg.geolocation import write_geolocation
+    from georeg.register.geolocation import write_geolocation
 
     truth = write_truth(tmp_path / "truth.tif", H_TRUE)
     geo = tmp_path / "geolocation.tif"
@@ -252,7 +252,7 @@ def test_segmentation_from_products_manifest(tmp_path: Path) -> None:
     )
     seg_ev = ev["segmentation"]
     assert seg_ev["products_accuracy"] == {"x": 1}
-    # with the demo mapping (tree -> class 3 of georeg.segmentation), or unmapped otherwise
+    # with the demo mapping (tree -> class 3 of georeg.products.segmentation), or unmapped otherwise
     assert seg_ev["pixels"] == W * H_
     assert map_truth_labels(lab, lut).max() == 2
     assert products_segmentation(tmp_path / "absent.json") is None

@@ -7,7 +7,7 @@ import pytest
 import rasterio
 from rasterio.transform import Affine
 
-from georeg.features import (
+from georeg.index.features import (
     DESC_SCALE,
     dequantize,
     detect_and_describe,

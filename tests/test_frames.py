@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from georeg.render_points import (
+from georeg.frames.render import (
     PinholeCamera,
     PointCloud,
     heightfield_cloud,
@@ -93,7 +93,7 @@ def demo_map(small_demo_map):
 @pytest.fixture(scope="module")
 def localised(demo_map):
     from georeg.demo.frames import CAMERA
-    from georeg.frame_localize import localize_set
+    from georeg.frames.localize import localize_set
 
     tmp, tdir, outs = demo_map
     cam = {k: CAMERA[k] for k in ("fx", "fy", "cx", "cy", "dist")}
@@ -108,7 +108,7 @@ def test_demo_truth_pose_reprojects_the_map(demo_map):
     pose and at a pose 5 m off, the truth render correlates better with the frame."""
     import cv2
 
-    from georeg.render_points import read_heightfield
+    from georeg.frames.render import read_heightfield
 
     tmp, tdir, outs = demo_map
     t = json.loads((tmp / "frames" / "truth.json").read_text())[0]
@@ -186,7 +186,7 @@ def _exif_jpeg(src: Path, dst: Path, tags: dict[int, float]) -> None:
 def test_exif_focal_from_35mm_equivalent_and_focal_plane(tmp_path):
     from PIL import Image
 
-    from georeg.frame_exif import exif_camera, exif_focal_px
+    from georeg.frames.exif import exif_camera, exif_focal_px
 
     src = tmp_path / "f.png"
     Image.fromarray(np.full((600, 800, 3), 90, np.uint8)).save(src)
@@ -205,7 +205,7 @@ def test_exif_focal_from_35mm_equivalent_and_focal_plane(tmp_path):
 
 @pytest.fixture(scope="module")
 def maps(demo_map):
-    from georeg.frame_localize import MapSources
+    from georeg.frames.localize import MapSources
 
     tmp, tdir, outs = demo_map
     return MapSources(tmp / "index", tdir / "ortho.tif", outs["dsm"], [])
@@ -216,7 +216,7 @@ def _truth(dirpath: Path, name: str) -> dict:
 
 
 def test_exif_focal_used_when_camera_is_null(demo_map, maps, tmp_path):
-    from georeg.frame_localize import evaluate, localize_frame
+    from georeg.frames.localize import evaluate, localize_frame
 
     tmp, _, _ = demo_map
     jpg = tmp_path / "nadir_120.jpg"
@@ -235,7 +235,7 @@ def test_focal_searched_and_refined_without_exif(demo_map, maps):
     """camera: null, no EXIF: the coarse step picks 800 px (of 480..1360), the refinement on the
     render stage's inliers brings it to about 700 px (truth), and the pose with it."""
     from georeg.demo.frames import generate_frames
-    from georeg.frame_localize import evaluate, localize_frame
+    from georeg.frames.localize import evaluate, localize_frame
 
     tmp, _, _ = demo_map
     out = tmp / "frames_obl"

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from rasterio.transform import Affine
 
-from georeg.features import (
+from georeg.index.features import (
     dequantize,
     detect_and_describe,
     merged_conf,
@@ -19,8 +19,8 @@ from georeg.features import (
     save_tile_features,
     tile_features,
 )
-from georeg.index import INDEX_ARRAYS, MapIndex
-from georeg.vocabulary import build_vocabulary, sample_descriptors, train_kmeans
+from georeg.index.map_index import INDEX_ARRAYS, MapIndex
+from georeg.index.vocabulary import build_vocabulary, sample_descriptors, train_kmeans
 
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -231,7 +231,7 @@ def test_true_tile_ranks_first_autzen(tmp_path):
 
 @pytest.mark.parametrize("method", ["hnsw", "kdtree"])
 def test_approximate_word_quantizers_agree_with_flat(method):
-    from georeg.index import WordQuantizer
+    from georeg.index.map_index import WordQuantizer
 
     rng = np.random.default_rng(0)
     cent = rng.random((3000, 128), np.float32)

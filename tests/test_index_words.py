@@ -11,8 +11,7 @@ import pytest
 from rasterio.transform import Affine
 from test_index import _texture, _tile_image
 
-from georeg.errors import InputError
-from georeg.index import (
+from georeg.index.map_index import (
     INDEX_ARRAYS,
     MapIndex,
     WordQuantizer,
@@ -20,7 +19,8 @@ from georeg.index import (
     build_from_grid,
     save_word_quantizer,
 )
-from georeg.vocabulary import build_vocabulary
+from georeg.index.vocabulary import build_vocabulary
+from georeg.io.errors import InputError
 
 
 @pytest.fixture(scope="module")

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from georeg.keyframes import keyframe_stats, select_keyframes
+from georeg.trajectory.keyframes import keyframe_stats, select_keyframes
 
 W, H = 200, 150
 
@@ -74,7 +74,7 @@ def test_indices_are_kept_and_must_increase():
 def test_stream_yields_each_keyframe_before_the_next_frame_is_read():
     """iter_keyframes: a keyframe comes out while its frame is the latest one read (the
     trajectory writes it then, without a second pass over the video)."""
-    from georeg.keyframes import iter_keyframes
+    from georeg.trajectory.keyframes import iter_keyframes
 
     pulled: list[int] = []
 

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import rasterio
 
-from georeg import lidar
-from georeg.elevation import LAYERS, make_elevation_tile
-from georeg.errors import InputError
-from georeg.mapgrid import MapGrid, make_ortho_tile, write_grid
+from georeg.io.errors import InputError
+from georeg.map import lidar
+from georeg.map.elevation import LAYERS, make_elevation_tile
+from georeg.map.grid import MapGrid, make_ortho_tile, write_grid
 
 DATA = Path(__file__).parents[1].parent / "shared" / "data" / "autzen"
 pytestmark = pytest.mark.shared

@@ -12,8 +12,8 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from georeg.demo import generate_scene
-from georeg.elevation import LAYERS, make_elevation_tile
-from georeg.mapgrid import MapGrid, make_ortho_tile, write_grid
+from georeg.map.elevation import LAYERS, make_elevation_tile
+from georeg.map.grid import MapGrid, make_ortho_tile, write_grid
 
 HOUSE, TALL_BUILDING = 7, 8  # georeg.demo.classes
 SMALL = {

@@ -17,11 +17,11 @@ from pyproj import CRS, Transformer
 from rasterio.transform import from_origin
 from rasterio.vrt import WarpedVRT
 
-from georeg import lidar
-from georeg.elevation import LAYERS, Grid, make_elevation_tile
-from georeg.errors import InputError
-from georeg.mapgrid import MapGrid, make_ortho_tile, tile_layout, write_grid, write_mosaic
-from georeg.raster_io import ELEV_NODATA, is_cog, open_raster
+from georeg.io.errors import InputError
+from georeg.io.raster import ELEV_NODATA, is_cog, open_raster
+from georeg.map import lidar
+from georeg.map.elevation import LAYERS, Grid, make_elevation_tile
+from georeg.map.grid import MapGrid, make_ortho_tile, tile_layout, write_grid, write_mosaic
 
 UTM = "EPSG:32611"
 X0, Y0 = 500_000.0, 3_760_000.0  # top-left of the synthetic orthophoto (UTM 11N, metres)

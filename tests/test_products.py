@@ -21,12 +21,12 @@ from rasterio.errors import NotGeoreferencedWarning
 from scipy.ndimage import binary_erosion
 from scipy.spatial import cKDTree
 
-from georeg import lidar
-from georeg import segmentation as seg
-from georeg.cube_resample import InverseGeolocation, read_band_chunk
-from georeg.geolocation import map_xy, sample_raster
-from georeg.products import make_cube, make_products
-from georeg.query_io import open_query
+from georeg.io.query import open_query
+from georeg.map import lidar
+from georeg.products import segmentation as seg
+from georeg.products.cube_resample import InverseGeolocation, read_band_chunk
+from georeg.products.make import make_cube, make_products
+from georeg.register.geolocation import map_xy, sample_raster
 
 # seed 11 puts every demo class (incl. a few pool pixels) inside a 160 x 200 query at 1.6 m
 SCENE = {

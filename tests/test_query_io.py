@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import rasterio
 
-from georeg.band import parse_band_spec, select_band, stretch_uint8, write_query_band
-from georeg.errors import InputError
-from georeg.query_io import open_query, parse_envi_header
+from georeg.io.errors import InputError
+from georeg.io.query import open_query, parse_envi_header
+from georeg.register.band import parse_band_spec, select_band, stretch_uint8, write_query_band
 
 CODES = {"u1": 1, "i2": 2, "i4": 3, "f4": 4, "f8": 5, "u2": 12, "u4": 13, "i8": 14, "u8": 15}
 

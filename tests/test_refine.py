@@ -11,7 +11,7 @@ import rasterio
 from rasterio.errors import NotGeoreferencedWarning
 from rasterio.transform import Affine
 
-from georeg.refine import MapImage, PerLine, apply_h, measure_shifts, refine
+from georeg.register.refine import MapImage, PerLine, apply_h, measure_shifts, refine
 
 # ----------------------------------------------------------------------------- synthetic pair
 
@@ -89,7 +89,7 @@ def test_synthetic_jitter_recovered_to_subpixel(pair):
 def test_shift_measurement_sign_and_subpixel():
     rng = np.random.default_rng(5)
     img = _texture(rng, 160)
-    from georeg.refine import cfog
+    from georeg.register.refine import cfog
 
     valid = np.ones(img.shape, bool)
     # the query at p shows the map at p + (1.3, -0.6): the measured shift must be (1.3, -0.6)
@@ -137,10 +137,10 @@ SMALL = {
 
 
 def test_small_demo_refinement_beats_the_homography(tmp_path):
-    from georeg.band import select_band, stretch_uint8
     from georeg.demo import generate_scene
-    from georeg.query_io import open_query
-    from georeg.refine import read_map_gray
+    from georeg.io.query import open_query
+    from georeg.register.band import select_band, stretch_uint8
+    from georeg.register.refine import read_map_gray
 
     paths = generate_scene(SMALL, tmp_path)
     cube = open_query(paths["demo_hdr"])

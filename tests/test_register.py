@@ -10,13 +10,13 @@ import pytest
 import rasterio
 from rasterio.transform import Affine
 
-from georeg import acceptance, matching
-from georeg.band import select_band, stretch_uint8
-from georeg.features import detect_and_describe, pixel_to_map
-from georeg.fuse import fuse
-from georeg.geolocation import evaluate, map_xy, write_geolocation
-from georeg.query_io import open_query
-from georeg.search import MapSource, paper_centres, part_rows, query_features, search_part
+from georeg.index.features import detect_and_describe, pixel_to_map
+from georeg.io.query import open_query
+from georeg.register import acceptance, matching
+from georeg.register.band import select_band, stretch_uint8
+from georeg.register.fuse import fuse
+from georeg.register.geolocation import evaluate, map_xy, write_geolocation
+from georeg.register.search import MapSource, paper_centres, part_rows, query_features, search_part
 
 REPO = Path(__file__).resolve().parents[1]
 FEAT = {"rootsift": True, "max_features_per_mpx": None}

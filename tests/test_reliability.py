@@ -22,11 +22,11 @@ from rasterio.transform import from_origin
 from test_map_synthetic import UTM, X0, Y0, make_las, make_ortho, run_tile, scene_points
 from test_query_io import cube_of, write_envi
 
-from georeg.atomic import write_text
-from georeg.band import write_query_band
-from georeg.errors import InputError
-from georeg.mapgrid import make_ortho_tile, write_grid
-from georeg.search import gsd_in_map_units
+from georeg.io.atomic import write_text
+from georeg.io.errors import InputError
+from georeg.map.grid import make_ortho_tile, write_grid
+from georeg.register.band import write_query_band
+from georeg.register.search import gsd_in_map_units
 
 WL = "wavelength units = nm\nwavelength = {900, 1100, 1300, 1500, 1700}\n"
 
@@ -104,7 +104,7 @@ def test_las_without_crs_without_and_with_lidar_crs(tmp_path):
     clear_error(e, las, "no CRS", "map.lidar_crs")
     assert _elevation_outputs(tmp_path) == ["ortho.tif"]
     # the same file with map.lidar_crs: runs
-    from georeg.elevation import LAYERS, make_elevation_tile
+    from georeg.map.elevation import LAYERS, make_elevation_tile
 
     tdir = tmp_path / "tiles" / "r000_c000"
     outs = {k: str(tdir / f"{k}.tif") for k in LAYERS} | {"points": str(tdir / "points.laz")}

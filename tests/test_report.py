@@ -23,10 +23,10 @@ import rasterio
 from rasterio.crs import CRS
 from rasterio.transform import Affine
 
-from georeg.evaluation import run_evaluate_query
-from georeg.figures import load_query_data, make_query_figures
-from georeg.geolocation import map_xy, write_geolocation
-from georeg.report import parse_timings, query_seconds, run_report
+from georeg.register.geolocation import map_xy, write_geolocation
+from georeg.report.evaluation import run_evaluate_query
+from georeg.report.figures import load_query_data, make_query_figures
+from georeg.report.html import parse_timings, query_seconds, run_report
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 CHROMIUM = Path("/usr/bin/chromium")
@@ -192,7 +192,7 @@ def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
         (q / "registration.json").write_text(json.dumps(reg))
         products = labels = None
         if found:  # a products stage output: segmentation in query geometry + its manifest
-            # georeg.segmentation classes: 4 = grass, 5 = road / bare; demo labels 5 -> 4, 1 -> 5
+            # georeg.products.segmentation classes: 4 = grass, 5 = road / bare; demo labels 5 -> 4, 1 -> 5
             seg = np.where(band > 128, 4, 5).astype(np.uint8) * (band > 0)
             seg[:20] = np.where(band[:20] > 0, 1, 0)  # some wrong pixels: "tall building"
             _write(q / "segmentation.tif", seg, nodata=0)

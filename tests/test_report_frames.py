@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 import pytest
 
-from georeg.report import build_report
-from georeg.report_frames import MAX_VIDEO_OVERLAYS, THUMB_WIDTH, _truth_centres
+from georeg.report.frames_html import MAX_VIDEO_OVERLAYS, THUMB_WIDTH, _truth_centres
+from georeg.report.html import build_report
 
 ERR_A = {"horizontal_m": 1.0, "vertical_m": 0.5, "position_m": 1.118, "rotation_deg": 0.2}
 ERR_D = {"horizontal_m": 3.0, "vertical_m": 0.1, "position_m": 3.002, "rotation_deg": 0.6}

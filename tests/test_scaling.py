@@ -21,7 +21,7 @@ from georeg.demo.largemap import (
 )
 from georeg.demo.raster import Grid
 from georeg.demo.scene import MAP_EPSG, ORIGIN
-from georeg.errors import ConfigError
+from georeg.io.errors import ConfigError
 
 
 def _spec(size_m: float, **kw) -> LargeMapSpec:

@@ -10,9 +10,9 @@ import pytest
 from affine import Affine
 from scipy.spatial.transform import Rotation
 
-from georeg.icp import dsm_points, icp_refine
-from georeg.render_points import PinholeCamera, heightfield_cloud, pose_from_angles, render
-from georeg.sim3 import Sim3, ransac_sim3, refine_sim3, transform_pose, umeyama
+from georeg.frames.render import PinholeCamera, heightfield_cloud, pose_from_angles, render
+from georeg.trajectory.icp import dsm_points, icp_refine
+from georeg.trajectory.sim3 import Sim3, ransac_sim3, refine_sim3, transform_pose, umeyama
 
 F, W, H = 400.0, 480, 360
 CAMERA = {"fx": F, "fy": F, "cx": (W - 1) / 2, "cy": (H - 1) / 2}
@@ -183,7 +183,7 @@ def flight(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def model(flight, tmp_path_factory):
-    from georeg.sfm import run_sfm
+    from georeg.trajectory.sfm import run_sfm
 
     t0 = time.perf_counter()
     m = run_sfm(flight[0], tmp_path_factory.mktemp("sfm"), CAMERA)
@@ -208,7 +208,7 @@ def test_sfm_reconstructs_the_flight(flight, model, tmp_path):
     assert m.rgb.shape == (len(m.xyz), 3)
     np.testing.assert_array_equal(np.bincount(np.concatenate(m.obs_point), minlength=len(m.xyz)),
                                   m.track_len)  # fmt: skip
-    from georeg.sfm import read_model, write_model
+    from georeg.trajectory.sfm import read_model, write_model
 
     write_model(tmp_path / "model.npz", m)
     m2 = read_model(tmp_path / "model.npz")
@@ -222,7 +222,7 @@ def test_sfm_reconstructs_the_flight(flight, model, tmp_path):
 
 
 def test_structure_projection_one_true_anchor_recovers_the_sim3(flight, model):
-    from georeg.structure_projection import estimate_sfm_to_map, project_structure
+    from georeg.trajectory.structure_projection import estimate_sfm_to_map, project_structure
 
     _, cloud, Rt, Ct = flight
     m = model
@@ -248,7 +248,7 @@ def test_structure_projection_one_true_anchor_recovers_the_sim3(flight, model):
 
 
 def test_depth_discontinuities_are_rejected():
-    from georeg.structure_projection import _depth_at
+    from georeg.trajectory.structure_projection import _depth_at
 
     depth = np.full((20, 20), 100.0, np.float32)
     depth[:, 10:] = 80.0  # a roof edge
@@ -261,7 +261,7 @@ def test_depth_discontinuities_are_rejected():
 
 
 def test_sfm_self_calibrates_an_unknown_camera(flight, tmp_path):
-    from georeg.sfm import run_sfm
+    from georeg.trajectory.sfm import run_sfm
 
     d, _, _, Ct = flight
     m = run_sfm(d, tmp_path / "sfm", None, {"max_features": 2000})
@@ -274,8 +274,8 @@ def test_sfm_self_calibrates_an_unknown_camera(flight, tmp_path):
 
 
 def test_sfm_fails_clearly(tmp_path):
-    from georeg.errors import InputError
-    from georeg.sfm import run_sfm
+    from georeg.io.errors import InputError
+    from georeg.trajectory.sfm import run_sfm
 
     rng = np.random.default_rng(0)
     for i in range(3):

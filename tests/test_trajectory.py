@@ -24,8 +24,8 @@ def small_map(small_demo_map):
 
 @pytest.fixture(scope="module")
 def georeferenced(small_map):
-    from georeg.frame_localize import MapSources
-    from georeg.trajectory import georeference_video
+    from georeg.frames.localize import MapSources
+    from georeg.trajectory.pipeline import georeference_video
 
     tmp, tdir, outs, truth = small_map
     it = truth[0]["intrinsics"]
@@ -86,8 +86,8 @@ def test_video_of_another_place_is_not_found(small_map, tmp_path):
     """The SfM works, but no keyframe registers to the map: every frame not_found."""
     import cv2
 
-    from georeg.frame_localize import MapSources
-    from georeg.trajectory import georeference_video
+    from georeg.frames.localize import MapSources
+    from georeg.trajectory.pipeline import georeference_video
 
     tmp, tdir, outs, truth = small_map
     # the same flight mirrored left-right: the same textures, a city that is not on the map

@@ -1,5 +1,5 @@
-"""Per-frame location against geo-registered points (georeg.relocalize) and the trajectory
-outputs (georeg.trajectory_outputs), on a synthetic textured height field with known poses."""
+"""Per-frame location against geo-registered points (georeg.trajectory.relocalize) and the trajectory
+outputs (georeg.trajectory.outputs), on a synthetic textured height field with known poses."""
 
 from __future__ import annotations
 
@@ -13,9 +13,8 @@ import pyproj
 import pytest
 from rasterio.transform import from_origin
 
-from georeg.relocalize import PointMapLocalizer, Tracker
-from georeg.render_points import PinholeCamera, heightfield_cloud, pose_from_angles, render
-from georeg.trajectory_outputs import (
+from georeg.frames.render import PinholeCamera, heightfield_cloud, pose_from_angles, render
+from georeg.trajectory.outputs import (
     look_point,
     view_angles,
     write_csv,
@@ -23,6 +22,7 @@ from georeg.trajectory_outputs import (
     write_kml,
     write_point_map,
 )
+from georeg.trajectory.relocalize import PointMapLocalizer, Tracker
 
 CRS = pyproj.CRS.from_epsg(32611).to_wkt()
 X0, Y0 = 500_000.0, 3_700_000.0
@@ -91,7 +91,7 @@ def test_tracker_reports_lost_tracks(scene):
 
 
 def test_relocalisation_with_and_without_prior(scene):
-    from georeg.relocalize import colmap_sift
+    from georeg.trajectory.relocalize import colmap_sift
 
     cloud, cams, frames = scene
     extract = colmap_sift(3000)

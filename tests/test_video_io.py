@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from georeg.errors import InputError
-from georeg.video_io import FrameSource
+from georeg.io.errors import InputError
+from georeg.io.video import FrameSource
 
 
 def _frame(i: int, w: int = 64, h: int = 48) -> np.ndarray:

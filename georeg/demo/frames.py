@@ -3,7 +3,7 @@
 The city of ``generate_scene`` is rebuilt from ``scene.json`` (same seed streams, same layout,
 texture and query-epoch changes), rasterised finely (0.25-1 m) around each frame's footprint, lit
 by another sun than the orthophoto (afternoon), splatted with facades into a pinhole camera
-(``georeg.render_points``), then given another camera response (tone curve, white balance,
+(``georeg.frames.render``), then given another camera response (tone curve, white balance,
 vignetting), blur, noise and radial-tangential lens distortion. Nothing here reads the map
 products: the frames are independent of the LiDAR and the orthophoto they are registered to.
 """
@@ -18,20 +18,20 @@ from typing import Any
 import cv2
 import numpy as np
 
-from georeg.atomic import atomic_path, write_json
 from georeg.demo import spectra as S
 from georeg.demo.changes import apply_changes, car_changes
 from georeg.demo.layout import EPOCH_QUERY, make_layout
 from georeg.demo.raster import Grid, Texture, rasterize
 from georeg.demo.render import render_orthophoto
 from georeg.demo.scene import LAYOUT_PAD_M, ORIGIN, RNG_STREAMS, place_inside, place_outside
-from georeg.render_points import (
+from georeg.frames.render import (
     PinholeCamera,
     PointCloud,
     heightfield_cloud,
     pose_from_angles,
     render,
 )
+from georeg.io.atomic import atomic_path, write_json
 
 log = logging.getLogger(__name__)
 

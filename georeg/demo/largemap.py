@@ -48,7 +48,6 @@ import pyproj
 import rasterio
 from rasterio.windows import Window
 
-from georeg.atomic import atomic_path, write_json
 from georeg.demo.layout import (
     BLOCK_TYPES,
     SIDEWALK_M,
@@ -65,8 +64,9 @@ from georeg.demo.pushbroom import Flight, render_query
 from georeg.demo.raster import Grid, Surface, rasterize
 from georeg.demo.render import render_orthophoto
 from georeg.demo.scene import MAP_EPSG, ORIGIN, ORTHO_SUN, QUERY_SUN, write_geotiff
-from georeg.errors import ConfigError
-from georeg.raster_io import write_vrt
+from georeg.io.atomic import atomic_path, write_json
+from georeg.io.errors import ConfigError
+from georeg.io.raster import write_vrt
 
 log = logging.getLogger(__name__)
 

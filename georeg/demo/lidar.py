@@ -15,11 +15,11 @@ import laspy
 import numpy as np
 import pyproj
 
-from georeg.atomic import atomic_path
 from georeg.demo import classes as C
 from georeg.demo import spectra as S
 from georeg.demo.layout import Terrain
 from georeg.demo.raster import Surface
+from georeg.io.atomic import atomic_path
 
 RANGE_NOISE_M = 0.05
 BIRDS_PER_KM2 = 75.0

@@ -13,12 +13,12 @@ from pathlib import Path
 
 import numpy as np
 
-from georeg.atomic import atomic_path
 from georeg.demo import envi
 from georeg.demo import spectra as S
 from georeg.demo.illumination import direct_and_sky
 from georeg.demo.layout import EPOCH_QUERY, Layout
 from georeg.demo.raster import Grid, Texture, rasterize
+from georeg.io.atomic import atomic_path
 
 SUBSAMPLES = ((-0.25, -0.25), (-0.25, 0.25), (0.25, -0.25), (0.25, 0.25))  # (along, across) px
 JITTER_PAD_PX = 3.0

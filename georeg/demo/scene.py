@@ -13,7 +13,6 @@ import pyproj
 import rasterio
 from rasterio.errors import NotGeoreferencedWarning
 
-from georeg.atomic import atomic_path, write_json
 from georeg.demo import classes as C
 from georeg.demo import spectra as S
 from georeg.demo.changes import apply_changes, car_changes
@@ -30,7 +29,8 @@ from georeg.demo.lidar import simulate_tile, strip_bounds, write_laz
 from georeg.demo.pushbroom import Flight, render_query
 from georeg.demo.raster import Grid, Surface, Texture, rasterize
 from georeg.demo.render import render_orthophoto
-from georeg.errors import ConfigError
+from georeg.io.atomic import atomic_path, write_json
+from georeg.io.errors import ConfigError
 
 log = logging.getLogger(__name__)
 

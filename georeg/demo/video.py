@@ -23,7 +23,6 @@ import cv2
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from georeg.atomic import atomic_path, write_json
 from georeg.demo.frames import (
     CAMERA,
     FRAME_SUN,
@@ -36,8 +35,9 @@ from georeg.demo.frames import (
 )
 from georeg.demo.layout import EPOCH_QUERY
 from georeg.demo.raster import Grid, rasterize
-from georeg.errors import ConfigError
-from georeg.render_points import PinholeCamera, PointCloud, pose_from_angles
+from georeg.frames.render import PinholeCamera, PointCloud, pose_from_angles
+from georeg.io.atomic import atomic_path, write_json
+from georeg.io.errors import ConfigError
 
 log = logging.getLogger(__name__)
 

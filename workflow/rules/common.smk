@@ -157,8 +157,8 @@ def reg_query(wildcards):
 
 def reg_image_files(wildcards):
     """The query image, plus the ENVI data file next to a header (so a changed cube reruns)."""
-    from georeg.errors import InputError
-    from georeg.query_io import find_envi_data
+    from georeg.io.errors import InputError
+    from georeg.io.query import find_envi_data
 
     image = Path(reg_query(wildcards)["image"])
     files = [str(image)]
@@ -182,7 +182,7 @@ def reg_truth(wildcards):
 
 def prod_image_files(wildcards):
     """The query image, plus the ENVI data file next to a header (so a changed cube reruns)."""
-    from georeg.query_io import find_envi_data
+    from georeg.io.query import find_envi_data
 
     image = Path(config["queries"][wildcards.name]["image"])
     files = [str(image)]
@@ -255,7 +255,7 @@ def rep_benchmark(wildcards):
 
 def frame_set_media(fset):
     """The set's video file, or its ordered image list (paths and globs expanded)."""
-    from georeg.frame_localize import frame_images
+    from georeg.frames.localize import frame_images
 
     fs = config["frames"][fset]
     return [fs["video"]] if fs.get("video") else frame_images(fs.get("images"))

@@ -3,7 +3,7 @@
 # Params: the set's own entry and `frame_loc` (without demo_frames), so editing the demo views
 # reruns only the demo frames and what reads them.
 
-from georeg.frame_localize import frame_images
+from georeg.frames.localize import frame_images
 
 FRAME_LOC = {k: v for k, v in (config.get("frame_loc") or {}).items() if k != "demo_frames"}
 
@@ -38,7 +38,7 @@ rule localize_frames:
     resources:
         mem_mb=3000,
     script:
-        "../../scripts/localize_frames.py"
+        "../../scripts/frames_localize.py"
 
 
 TARGETS.append(expand("results/frames/{fset}/poses.json", fset=IMAGE_SETS))

@@ -4,7 +4,7 @@
 # (`register:`) reruns nothing here, while changing detector settings re-extracts every tile.
 
 INDEX_DIR = "results/index/map"
-# keep in sync with georeg.index.INDEX_ARRAYS (tests/test_index.py checks it)
+# keep in sync with georeg.index.map_index.INDEX_ARRAYS (tests/test_index.py checks it)
 INDEX_ARRAYS = [
     "xy", "z", "ndsm", "scale", "angle", "response", "desc", "tile", "word",
     "tile_offsets", "tile_bounds", "centroids", "ivf_offsets", "ivf_ids", "df", "idf",

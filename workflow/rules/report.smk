@@ -28,7 +28,7 @@ rule evaluate_query:
     resources:
         mem_mb=1500,
     script:
-        "../../scripts/evaluate_query.py"
+        "../../scripts/report_evaluate_query.py"
 
 
 rule report_figures:

@@ -34,7 +34,7 @@ rule trajectory:
     resources:
         mem_mb=4000,
     script:
-        "../../scripts/trajectory.py"
+        "../../scripts/trajectory_georeference.py"
 
 
 TARGETS.append(expand("results/frames/{vset}/poses.json", vset=VIDEO_SETS))

@@ -1,0 +1,1 @@
+"""Frame geo-localisation: rendering, coarse location, PnP, refinement, outputs."""

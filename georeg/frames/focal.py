@@ -1,0 +1,95 @@
+"""Focal length estimation inside the render-match-PnP stage, for ``camera: null`` (issue 9).
+
+The coarse step only picks the best of a few focal candidates (``focal_factors``), off by up to
+~15 %: the PnP then absorbs the error into the camera height. Here the inlier 2-D/3-D
+correspondences of the render stage (3-D from the depth buffer, valid whatever the focal) give
+the focal length: a robust least squares of the reprojection error over the pose and
+log(f) (fx = fy, principal point at the centre), then the render stage runs again with that
+focal, until it moves less than ``tol`` (relative; then the joint fit's focal and pose are
+kept). The focal and the camera distance are separable only through the depth spread of the
+inliers (relief, an oblique view): over flat ground seen at nadir they are not, and the fit's
+standard deviation of the focal (``fx_rel_sigma``, from the Jacobian) says so.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import Any
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+
+from georeg.frames.pnp import PnPResult, register_by_rendering
+from georeg.frames.render import PinholeCamera, PointCloud
+
+log = logging.getLogger(__name__)
+
+
+def refine_focal(
+    xyz: np.ndarray, uv: np.ndarray, cam: PinholeCamera, loss_px: float = 2.0
+) -> tuple[float, np.ndarray, np.ndarray, float, float]:
+    """(f, R, C, RMS px, relative standard deviation of f) minimising the robust reprojection
+    error of ``xyz`` -> ``uv`` over the pose and f (fx = fy), from ``cam``; principal point
+    kept."""
+    o = xyz.mean(axis=0)
+    X = np.asarray(xyz, float) - o
+    r0 = cv2.Rodrigues(np.asarray(cam.R, float))[0].ravel()
+    x0 = np.r_[r0, np.asarray(cam.C, float) - o, np.log(cam.fx)]
+
+    def resid(p: np.ndarray) -> np.ndarray:
+        R = cv2.Rodrigues(p[:3])[0]
+        Xc = (X - p[3:6]) @ R.T
+        z = np.where(np.abs(Xc[:, 2]) < 1e-6, 1e-6, Xc[:, 2])
+        f = np.exp(p[6])
+        return np.r_[f * Xc[:, 0] / z + cam.cx - uv[:, 0], f * Xc[:, 1] / z + cam.cy - uv[:, 1]]
+
+    sol = least_squares(resid, x0, loss="huber", f_scale=loss_px, x_scale="jac", max_nfev=200)
+    r = resid(sol.x).reshape(2, -1)
+    rms = float(np.sqrt(np.mean(np.sum(r**2, axis=0))))
+    dof = max(1, r.size - len(sol.x))
+    cov = np.linalg.pinv(sol.jac.T @ sol.jac) * float(np.sum(r**2)) / dof
+    sigma = float(np.sqrt(max(cov[6, 6], 0.0)))  # of log f = relative, for small values
+    return float(np.exp(sol.x[6])), cv2.Rodrigues(sol.x[:3])[0], sol.x[3:6] + o, rms, sigma
+
+
+def estimate_focal(
+    gray: np.ndarray, res: PnPResult, cam: PinholeCamera, cloud: PointCloud, map_gsd: float,
+    feat_conf: dict | None, pnp_conf: dict | None, rounds: int = 4, tol: float = 0.005,
+    bounds: tuple[float, float] = (0.3, 3.0),
+) -> tuple[PnPResult, PinholeCamera, dict[str, Any]]:  # fmt: skip
+    """Alternate focal refinement on the inliers and the render stage at that focal.
+
+    ``res`` is the render stage's result at ``cam`` (its focal). A round's result is kept when it
+    is ``ok`` and keeps at least 0.6 x the previous inliers; the focal stays within ``bounds`` x
+    the image width. Returns (result, camera with the final focal and pose, info)."""
+    w = cam.width
+    info: dict[str, Any] = {"start_fx": float(cam.fx), "rounds": []}
+    for _ in range(int(rounds)):
+        if res.inlier_xyz is None or len(res.inlier_xyz) < 8:
+            break
+        f, R, C, rms, sig = refine_focal(res.inlier_xyz, res.inlier_uv, cam.with_pose(res.R, res.C))
+        f = float(np.clip(f, bounds[0] * w, bounds[1] * w))
+        step: dict[str, Any] = {"fx": f, "lsq_rms_px": rms, "fx_rel_sigma": sig}
+        info["fx_rel_sigma"] = sig
+        info["rounds"].append(step)
+        if abs(f / cam.fx - 1) < tol:  # adopt the joint fit (same inliers)
+            step["converged"] = True
+            cam = dataclasses.replace(cam, fx=f, fy=f)
+            res = dataclasses.replace(res, R=R, C=np.asarray(C, float), reprojection_px=rms)
+            break
+        cam_f = dataclasses.replace(cam, fx=f, fy=f, R=R, C=np.asarray(C, float))
+        new = register_by_rendering(gray, cam_f, cloud, map_gsd, feat_conf, pnp_conf)
+        step.update(inliers=int(new.inliers), reprojection_px=float(new.reprojection_px))
+        log.info("focal %.1f -> %.1f px: %d inliers (was %d)", cam.fx, f, new.inliers, res.inliers)
+        if not new.ok or new.inliers < 0.6 * res.inliers:
+            step["kept"] = False
+            break
+        step["kept"] = True
+        res, cam = new, cam_f.with_pose(new.R, new.C)
+    info["fx"] = float(cam.fx)
+    if info.get("fx_rel_sigma", 0.0) > 0.05:
+        log.warning("focal %.0f px poorly determined (+-%.0f %%): flat or distant inliers",
+                    cam.fx, 100 * info["fx_rel_sigma"])  # fmt: skip
+    return res, cam.with_pose(res.R, res.C), info

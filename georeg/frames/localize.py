@@ -1,0 +1,302 @@
+"""Single-frame geo-localisation (issue 9): one frame set -> poses.json, GeoJSON, KML, overlays.
+
+Per frame: read, undistort (known ``camera``), coarse location by the map index
+(``frame_coarse``), render-match-PnP iterations against the textured map (``frame_pnp``),
+optional intensity refinement (``frame_refine``), outputs (``frame_outputs``). A frame whose
+coarse search or PnP does not reach the inlier bounds is ``not_found`` (never an error).
+Unknown intrinsics (``camera: null``): the EXIF focal length of the file when it has one
+(``frame_exif``: 35 mm equivalent, or focal length and focal-plane resolution; ``intrinsics.source``
+= "exif"), else the focal length is searched in the coarse PnP over ``focal_factors`` x the image
+width and refined on the render stage's inliers (``frame_focal``, ``focal_rounds``; ``focal`` in
+the record, with the fit's relative standard deviation: a nadir view of flat ground does not
+determine it); principal point at the centre, no distortion, in both cases.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import glob
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from georeg.frames.coarse import coarse_locate
+from georeg.frames.exif import exif_camera
+from georeg.frames.focal import estimate_focal
+from georeg.frames.outputs import (
+    footprint_window,
+    footprint_xy,
+    overlay,
+    write_geojson,
+    write_kml,
+    write_png,
+    write_poses,
+)
+from georeg.frames.pnp import register_by_rendering
+from georeg.frames.render import (
+    PinholeCamera,
+    PointCloud,
+    Render,
+    read_heightfield,
+    read_laz_cloud,
+    render,
+)
+from georeg.io.errors import InputError
+
+log = logging.getLogger(__name__)
+
+DEFAULTS: dict[str, Any] = {
+    "dense_coarse": True,  # coarse votes on dense features of the index's best windows
+    "render_source": "heightfield",  # heightfield (ortho + DSM mosaics, with walls) | points (points.laz)
+    "cloud_margin_m": 120.0,  # map window read around the coarse footprint
+    "max_cloud_extent_m": 1600.0,
+    "focal_factors": [0.6, 0.8, 1.0, 1.3, 1.7],  # unknown camera: fx candidates x image width
+    "focal_rounds": 4,  # unknown camera: focal refinement + render-stage rounds (0: search only)
+    "coarse": {},
+    "pnp": {},
+    "refine": {"enabled": True},
+    "vote_starts": 2,  # nadir-vote poses also tried as render-stage starts (after the coarse PnP)
+    "refine_max_extra_px": 1.5,  # refined pose kept if the PnP inliers' RMS grows less than this
+    "min_inliers": 15,  # final PnP inliers to call a frame registered
+    "overlay_alpha": 0.5,
+}
+
+
+def frame_images(images: Any) -> list[str]:
+    """``images``: a list of paths and/or globs, or one glob; sorted within each glob."""
+    items = [images] if isinstance(images, str) else list(images or [])
+    out: list[str] = []
+    for it in items:
+        hits = sorted(glob.glob(it)) if any(ch in it for ch in "*?[") else [it]
+        out.extend(hits)
+    return out
+
+
+def read_frame(path: str | Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise InputError(path, "cannot read the frame image", "PNG/JPEG/TIFF readable by OpenCV")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def camera_matrix(camera: dict | None, width: int, height: int, fx: float | None = None):
+    """(K, dist) of the configured camera; for ``camera: null`` a centred K with ``fx``."""
+    if camera:
+        K = np.array(
+            [[camera["fx"], 0, camera["cx"]], [0, camera["fy"], camera["cy"]], [0, 0, 1]], float
+        )
+        dist = np.asarray(camera.get("dist") or [0, 0, 0, 0, 0], float)
+        return K, dist
+    f = float(fx if fx is not None else width)
+    return np.array(
+        [[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]], float
+    ), np.zeros(5)
+
+
+class MapSources:
+    """What a frame is registered to: the index, the mosaics, the LiDAR tiles, the CRS."""
+
+    def __init__(self, index_dir, ortho_vrt, dsm_vrt, laz_paths=(), crs_wkt: str | None = None,
+                 dense_coarse: bool = True):  # fmt: skip
+        from georeg.index.map_index import MapIndex
+
+        self.index = MapIndex.load(index_dir)
+        self.ortho, self.dsm, self.laz = str(ortho_vrt), str(dsm_vrt), [str(p) for p in laz_paths]
+        self.crs_wkt = crs_wkt or self.index.crs_wkt
+        self.gsd = float(self.index.gsd_m or 1.0)
+        self.dense = (self.ortho, self.dsm) if dense_coarse else None
+
+    def ground_z(self, C: np.ndarray, radius: float = 150.0) -> float:
+        """Median elevation of the map features within ``radius`` of C (x, y)."""
+        ids = self.index.features_in((C[0] - radius, C[1] - radius, C[0] + radius, C[1] + radius))
+        z = np.asarray(self.index.features(ids)["z"], float) if len(ids) else np.zeros(0)
+        z = z[np.isfinite(z)]
+        return float(np.median(z)) if z.size else float(C[2] - 100.0)
+
+    def cloud(self, bounds, source: str) -> PointCloud:
+        if source == "points" and self.laz:
+            return read_laz_cloud(self.laz, bounds)
+        return read_heightfield(self.ortho, self.dsm, bounds)
+
+
+def display_render(cloud: PointCloud, cam: PinholeCamera, map_gsd: float) -> Render:
+    """The map at ``cam`` for overlays: rendered at about the map's GSD (no splat blocks), then
+    upsampled to the frame (linear colour, nearest depth)."""
+    r0 = render(cloud, cam.scaled(min(1.0, 160 / cam.width)))
+    d = r0.depth[np.isfinite(r0.depth)]
+    dist = float(np.median(d)) if d.size else 100.0
+    s = float(np.clip(dist / cam.fx / map_gsd, 0.1, 1.0))
+    r = render(cloud, cam.scaled(s))
+    size = (cam.width, cam.height)
+    img = cv2.resize(r.image, size, interpolation=cv2.INTER_LINEAR)
+    dep = cv2.resize(r.depth, size, interpolation=cv2.INTER_NEAREST)
+    return Render(img, dep, cam)
+
+
+def _rot_err(Ra, Rb) -> float:
+    c = (np.trace(np.asarray(Ra) @ np.asarray(Rb).T) - 1) / 2
+    return float(np.degrees(np.arccos(np.clip(c, -1, 1))))
+
+
+def localize_frame(
+    path: str, camera: dict | None, maps: MapSources, conf: dict
+) -> tuple[dict, Any]:
+    """Pose of one frame file; returns (pose record, (undistorted rgb, final Render or None)).
+    ``camera`` None: the EXIF focal length when the file has one (``frame_exif``)."""
+    rgb = read_frame(path)
+    if not camera:
+        camera = exif_camera(path, rgb.shape[1], rgb.shape[0])
+    return localize_image(rgb, str(path), camera, maps, conf)
+
+
+def localize_image(
+    rgb: np.ndarray, path: str, camera: dict | None, maps: MapSources, conf: dict
+) -> tuple[dict, Any]:
+    """Pose of one RGB frame named ``path`` (a file name, or ``video#index``); see
+    ``localize_frame``."""
+    c = {**DEFAULTS, **(conf or {})}
+    t0 = time.perf_counter()
+    timings: dict[str, float] = {}
+    h, w = rgb.shape[:2]
+    rec: dict[str, Any] = {"image": str(path), "status": "not_found"}
+    if camera:
+        K, dist = camera_matrix(camera, w, h)
+        und = cv2.undistort(rgb, K, dist) if np.any(dist) else rgb
+        gray = cv2.cvtColor(und, cv2.COLOR_RGB2GRAY)
+        co = coarse_locate(gray, K, maps.index, c["coarse"], maps.dense)
+        focal_note = camera.get("source", "given")  # "exif": from frame_exif
+    else:
+        und = rgb
+        gray = cv2.cvtColor(und, cv2.COLOR_RGB2GRAY)
+        co, K = None, None
+        for fac in c["focal_factors"]:
+            Kf, _ = camera_matrix(None, w, h, fac * w)
+            r = coarse_locate(gray, Kf, maps.index, c["coarse"], maps.dense)
+            log.info("focal search: fx = %.0f px -> %s, %d inliers", fac * w, r.ok, r.inliers)
+            if co is None or (r.ok and r.inliers > co.inliers):
+                co, K = r, Kf
+        dist = np.zeros(5)
+        focal_note = "estimated (focal search in PnP)"
+    timings["coarse_s"] = time.perf_counter() - t0
+    rec["intrinsics"] = {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]),
+                         "cy": float(K[1, 2]), "dist": [float(v) for v in dist], "width": w,
+                         "height": h, "source": focal_note}  # fmt: skip
+    rec["coarse"] = {"ok": co.ok, "inliers": co.inliers, "reason": co.reason,
+                     "candidates": co.candidates}  # fmt: skip
+    final_render = None
+    starts = [(co.R, co.C, "coarse PnP")] if co.ok else []
+    starts += [
+        (R, C, f"nadir vote ({v} votes)") for R, C, v in co.hypotheses[: int(c["vote_starts"])]
+    ]
+    if not starts:
+        rec["reason"] = f"coarse: {co.reason}"
+    for R0, C0, how in starts:
+        t1 = time.perf_counter()
+        cam0 = PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, R0, C0)
+        zg = maps.ground_z(C0)
+        b = footprint_window([cam0], zg, float(c["cloud_margin_m"]),
+                             float(c["max_cloud_extent_m"]), centre=C0)  # fmt: skip
+        cloud = maps.cloud(b, c["render_source"])
+        timings["cloud_s"] = time.perf_counter() - t1
+        t2 = time.perf_counter()
+        feat_conf = maps.index.meta.get("features_conf") or {}
+        res = register_by_rendering(gray, cam0, cloud, maps.gsd, feat_conf, c["pnp"])
+        if not camera and res.ok and int(c["focal_rounds"]) > 0:  # searched focal: refine it
+            res, cam_f, rec["focal"] = estimate_focal(gray, res, cam0.with_pose(res.R, res.C), cloud,
+                                                      maps.gsd, feat_conf, c["pnp"], int(c["focal_rounds"]))  # fmt: skip
+            cam0 = dataclasses.replace(cam0, fx=cam_f.fx, fy=cam_f.fy)
+            rec["intrinsics"].update(fx=float(cam_f.fx), fy=float(cam_f.fy),
+                                     source="estimated (focal search, then refined in PnP)")  # fmt: skip
+        timings["pnp_s"] = timings.get("pnp_s", 0.0) + time.perf_counter() - t2
+        rec.setdefault("pnp_attempts", []).append({"start": how, "start_center_xyz": [float(v) for v in C0],
+                                                   "inliers": res.inliers, "history": res.history})  # fmt: skip
+        if res.ok and res.inliers >= int(c["min_inliers"]):
+            cam = cam0.with_pose(res.R, res.C)
+            rec["pnp"] = {"camera_center_xyz": [float(v) for v in res.C], "R_world_to_cam": res.R.tolist(),
+                          "inliers": res.inliers, "reprojection_px": res.reprojection_px}  # fmt: skip
+            if (c.get("refine") or {}).get("enabled", True):
+                from georeg.frames.refine import refine_pose
+
+                t3 = time.perf_counter()
+                ref = refine_pose(gray, cam, cloud, c.get("refine") or {})
+                timings["refine_s"] = time.perf_counter() - t3
+                # the refinement must not contradict the PnP inliers (geometric evidence)
+                cam_r = cam.with_pose(ref.R, ref.C)
+                uv_r, _ = cam_r.project(res.inlier_xyz)
+                rms_r = float(np.sqrt(np.mean(np.sum((uv_r - res.inlier_uv) ** 2, axis=1))))
+                limit = max(
+                    2.0 * res.reprojection_px, res.reprojection_px + float(c["refine_max_extra_px"])
+                )
+                ref.info.update(
+                    inlier_rms_px=rms_r, inlier_rms_limit_px=limit, accepted=rms_r <= limit
+                )
+                rec["refine"] = ref.info
+                if rms_r <= limit:
+                    cam = cam_r
+            z_med = float(np.median(res.inlier_xyz[:, 2])) if res.inlier_xyz is not None else zg
+            rec.update(status="registered", camera_center_xyz=[float(v) for v in cam.C],
+                       R_world_to_cam=np.asarray(cam.R).tolist(), inliers=int(res.inliers),
+                       reprojection_px=float(res.reprojection_px),
+                       footprint_xy=footprint_xy(cam, z_med).tolist())  # fmt: skip
+            final_render = display_render(cloud, cam, maps.gsd)
+            break
+        rec["reason"] = (
+            f"render-match-PnP: {res.inliers} inliers (< {c['min_inliers']}) from every start"
+        )
+    if rec["status"] != "registered":
+        best_inl = max([a["inliers"] for a in rec.get("pnp_attempts", [])], default=0)
+        rec.update(camera_center_xyz=None, R_world_to_cam=None, inliers=int(best_inl),
+                   reprojection_px=None)  # fmt: skip
+    timings["total_s"] = time.perf_counter() - t0
+    rec["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
+    log.info("frame %s: %s (%.1f s)", path, rec["status"], timings["total_s"])
+    return rec, (und, final_render)
+
+
+def evaluate(rec: dict, truth: dict) -> dict:
+    """Position (horizontal, vertical, 3-D, m) and rotation (deg) errors against a truth record."""
+    out: dict[str, Any] = {"expected": truth.get("status")}
+    Ct, Rt = np.asarray(truth["camera_center_xyz"]), np.asarray(truth["R_world_to_cam"])
+    out["truth_center_xyz"] = [float(v) for v in Ct]  # the report's camera path plot
+    for key, src in (("final", rec), ("pnp", rec.get("pnp"))):
+        if not src or src.get("camera_center_xyz") is None:
+            continue
+        d = np.asarray(src["camera_center_xyz"]) - Ct
+        out[key] = {"horizontal_m": float(np.hypot(d[0], d[1])), "vertical_m": float(abs(d[2])),
+                    "position_m": float(np.linalg.norm(d)),
+                    "rotation_deg": _rot_err(src["R_world_to_cam"], Rt)}  # fmt: skip
+    return out
+
+
+def localize_set(images: Any, camera: dict | None, index_dir, ortho_vrt, dsm_vrt, laz_paths,
+                 conf: dict, out_dir, truth_path: str | None = None) -> list[dict]:  # fmt: skip
+    """Rule ``localize_frames``: every frame of a set -> results/frames/{set}/."""
+    out = Path(out_dir)
+    maps = MapSources(
+        index_dir,
+        ortho_vrt,
+        dsm_vrt,
+        laz_paths,
+        dense_coarse=bool(conf.get("dense_coarse", DEFAULTS["dense_coarse"])),
+    )
+    truth = {}
+    if truth_path:
+        import json
+
+        truth = {Path(t["image"]).name: t for t in json.loads(Path(truth_path).read_text())}
+    poses = []
+    for p in frame_images(images):
+        rec, (und, rend) = localize_frame(p, camera, maps, conf)
+        if Path(p).name in truth:
+            rec["evaluation"] = evaluate(rec, truth[Path(p).name])
+        a = float(conf.get("overlay_alpha", DEFAULTS["overlay_alpha"]))
+        write_png(out / "overlays" / f"{Path(p).stem}.png", overlay(und, rend, a))
+        poses.append(rec)
+    write_geojson(out / "cameras.geojson", poses, maps.crs_wkt)
+    write_kml(out / "cameras.kml", poses, maps.crs_wkt)
+    write_poses(out / "poses.json", poses)
+    return poses

@@ -1,0 +1,1 @@
+"""Feature index: geo-referenced map features, the visual-word vocabulary and the inverted file."""

@@ -1,0 +1,1 @@
+"""Map preparation: the tile grid, orthophoto tiles, LiDAR/DEM elevation, mosaics and overview."""

@@ -1,0 +1,1 @@
+"""Products of a registered query: cube, elevation, fused raster, point cloud, segmentation, footprint."""

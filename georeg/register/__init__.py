@@ -1,0 +1,1 @@
+"""Query registration: band, search, matching, acceptance, fusion, refinement, geolocation."""

@@ -1,0 +1,268 @@
+"""Fuse the parts' winners: check agreement, re-match the whole query in the winning neighbourhood.
+
+The paper's two halves came out slightly misaligned; here the full query is re-matched in the
+neighbourhood the best part found and one homography is estimated from all inliers.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from itertools import combinations
+from typing import Any
+
+import numpy as np
+
+from georeg.register import matching
+from georeg.register.search import MapSource, QueryFeatures, verify
+
+log = logging.getLogger(__name__)
+
+
+def sample_grid(
+    width: int, height: int, rows: tuple[int, int] | None = None, n: int = 16
+) -> np.ndarray:
+    """An n x n grid of query pixel positions over the footprint (or over ``rows``)."""
+    r0, r1 = rows if rows is not None else (0, height)
+    u = np.linspace(0, width - 1, n)
+    v = np.linspace(r0, max(r0, r1 - 1), n)
+    gu, gv = np.meshgrid(u, v)
+    return np.c_[gu.ravel(), gv.ravel()]
+
+
+def disagreement_m(Ha: np.ndarray, Hb: np.ndarray, pts: np.ndarray) -> dict[str, float]:
+    """Distance in map units between two homographies' predictions at query points."""
+    d = np.linalg.norm(matching.apply_h(Ha, pts) - matching.apply_h(Hb, pts), axis=1)
+    d = np.where(np.isfinite(d), d, np.inf)
+    return {"median": float(np.median(d)), "max": float(d.max())}
+
+
+def footprint_bounds(
+    H: np.ndarray, width: int, height: int, margin: float
+) -> tuple[float, float, float, float]:
+    """Map bounding box of the query footprint through H, grown by ``margin``."""
+    p = matching.apply_h(H, sample_grid(width, height, n=8))
+    return (
+        float(p[:, 0].min() - margin),
+        float(p[:, 1].min() - margin),
+        float(p[:, 0].max() + margin),
+        float(p[:, 1].max() + margin),
+    )
+
+
+def fuse(
+    full: QueryFeatures,
+    source: MapSource,
+    parts: list[dict[str, Any]],
+    conf: dict[str, Any],
+    gsd_m: float | None,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Combine part results into one registration of the whole query (``conf`` = ``register``)."""
+    t0 = time.perf_counter()
+    fc = conf.get("fuse", {})
+    width, height = full.width, full.height
+    acc = [p for p in parts if p.get("accepted")]
+    out: dict[str, Any] = {"parts_accepted": [p["part"] for p in acc]}
+    if not acc:
+        reasons = "; ".join(
+            f"part {p['part']}: {p['candidates_tried']} candidate(s) tried, none accepted"
+            for p in parts
+        )
+        out.update(status="not_found", reason=reasons or "no part", homography=None)
+        return out
+    Hs = {p["part"]: np.array(p["homography"]) for p in acc}
+    # before: the parts' own homographies compared over the whole footprint and at their seam
+    grid = sample_grid(width, height)
+    before: dict[str, Any] = {}
+    for a, b in combinations(sorted(Hs), 2):
+        seam_row = parts[b]["rows"][0] if b < len(parts) else height // 2
+        seam = np.c_[np.linspace(0, width - 1, 32), np.full(32, float(seam_row))]
+        before[f"{a}-{b}"] = {
+            "footprint_m": disagreement_m(Hs[a], Hs[b], grid),
+            "seam_m": disagreement_m(Hs[a], Hs[b], seam),
+        }
+    out["disagreement_before"] = before
+    # the best part (lowest NFA, then most inliers) and the parts that agree with it
+    best = min(acc, key=lambda p: (p.get("log10_nfa") or 0.0, -p["inliers"]))
+    Hb = Hs[best["part"]]
+    tol = float(fc.get("agree_m", 25.0))
+    agree = [p["part"] for p in acc if disagreement_m(Hb, Hs[p["part"]], grid)["median"] <= tol]
+    out["best_part"] = best["part"]
+    out["agreeing_parts"] = agree
+    if len(acc) > 1 and len(agree) < len(acc):
+        log.warning(
+            "parts %s disagree with part %s by more than %.0f m",
+            sorted(set(Hs) - set(agree)),
+            best["part"],
+            tol,
+        )
+    # re-match the full query in the winning neighbourhood
+    margin = float(fc.get("margin_m", 50.0))
+    region = footprint_bounds(Hb, width, height, margin)
+    rec, m, fit = verify(
+        full,
+        source,
+        region,
+        conf,
+        gsd_m,
+        n_candidates=1,
+        seed=seed,
+        max_matches=int(fc.get("max_matches", 0)),
+        guide=(Hb, float(fc.get("guide_radius_m", 30.0))),
+    )
+    out["fused_candidate"] = {k: v for k, v in rec.items() if k != "homography"}
+    if rec["accepted"] and fit is not None and m is not None:
+        H = fit.H
+        inl = fit.inliers
+        out.update(
+            status="registered",
+            method="fused",
+            homography=H.tolist(),  # type: ignore[union-attr]
+            inliers=fit.n_inliers,
+            matches=len(m),
+            residual_px=fit.rms_px,
+            log10_nfa=rec.get("log10_nfa"),
+            region=list(region),
+        )
+        # after: each part's own area under the fused homography vs its own fit, and inlier residuals
+        after = {}
+        res_m = fit.residual_px * source.gsd_m
+        for p in parts:
+            r0, r1 = p["rows"]
+            sel = inl & (m.q_xy[:, 1] >= r0) & (m.q_xy[:, 1] < r1)
+            entry: dict[str, Any] = {
+                "inliers": int(sel.sum()),
+                "residual_rms_m": float(np.sqrt(np.mean(res_m[sel] ** 2))) if sel.any() else None,
+            }
+            if p["part"] in Hs:
+                entry["vs_part_homography_m"] = disagreement_m(
+                    H, Hs[p["part"]], sample_grid(width, height, (r0, r1))
+                )
+            after[str(p["part"])] = entry
+        out["disagreement_after"] = after
+    else:
+        # the fused fit failed: keep the best part (its homography already passed acceptance)
+        log.warning(
+            "full-query re-match not accepted (%s): using part %s", rec.get("reason"), best["part"]
+        )
+        out.update(
+            status="registered",
+            method="best_part",
+            homography=Hb.tolist(),
+            inliers=best["inliers"],
+            matches=best.get("matches"),
+            residual_px=best.get("residual_px"),
+            log10_nfa=best.get("log10_nfa"),
+            region=best.get("region"),
+        )
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def run_fuse_parts(
+    band_tif: str,
+    band_json: str,
+    part_jsons: list[str],
+    index_path: str,
+    grid_path: str | None,
+    dsm: str | None,
+    truth: str | None,
+    reg_conf: dict[str, Any],
+    seed: int,
+    out_json: str,
+    out_geoloc: str,
+) -> dict[str, Any]:
+    """Rule fuse_parts: fuse, write geolocation.tif (all NaN when not found) and registration.json."""
+    import json
+    from pathlib import Path
+
+    from georeg.io.atomic import write_json
+    from georeg.register.band import feature_scales, read_query_band
+    from georeg.register.geolocation import evaluate, write_geolocation
+    from georeg.register.search import gsd_in_map_units, load_source, query_features
+
+    t0 = time.perf_counter()
+    meta = json.loads(Path(band_json).read_text())
+    parts = sorted((json.loads(Path(p).read_text()) for p in part_jsons), key=lambda p: p["part"])
+    source = load_source(index_path, grid_path)
+    u8 = read_query_band(band_tif)
+    h, w = u8.shape
+    gsd = gsd_in_map_units(meta.get("gsd_m"), source.crs_wkt)
+    timings: dict[str, Any] = {
+        "query_band": meta.get("seconds"),
+        "search_parts": {str(p["part"]): p.get("seconds") for p in parts},
+    }
+    fused: dict[str, Any]
+    t1 = time.perf_counter()
+    if any(p.get("accepted") for p in parts):
+        factors = feature_scales(gsd, source.gsd_m, reg_conf.get("unknown_gsd_factors", [1.0]))
+        full = query_features(u8, (0, h), factors, source.features_conf)
+        timings["fuse_features"] = time.perf_counter() - t1
+        t1 = time.perf_counter()
+        fused = fuse(full, source, parts, reg_conf, gsd, seed)
+        timings["fuse_match"] = time.perf_counter() - t1
+    else:
+        dummy = QueryFeatures(
+            np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros(0), w, h, (0, 0), [1.0]
+        )
+        fused = fuse(dummy, source, parts, reg_conf, gsd, seed)
+    H = None if fused.get("homography") is None else np.array(fused["homography"])
+    t1 = time.perf_counter()
+    geo = write_geolocation(out_geoloc, H, w, h, dsm, source.crs_wkt)
+    timings["geolocation"] = time.perf_counter() - t1
+    map_px = _map_px(grid_path) or source.gsd_m
+    reg: dict[str, Any] = {
+        "status": fused["status"],
+        "query": meta.get("image"),
+        "band": meta.get("band"),
+        "width": w,
+        "height": h,
+        "crs": source.crs_wkt,
+        "homography": fused.get("homography"),
+        "homography_convention": "query pixel centre (col, row) -> map (x, y), [x y w] = H [col row 1]",
+        "inliers": fused.get("inliers", 0),
+        "matches": fused.get("matches"),
+        "residual_px": fused.get("residual_px"),
+        "log10_nfa": fused.get("log10_nfa"),
+        "strategy": reg_conf.get("strategy"),
+        "acceptance": (reg_conf.get("acceptance") or {}).get("mode", "nfa"),
+        "map_px_m": map_px,
+        "feature_gsd_m": source.gsd_m,
+        "candidates_tried": int(sum(p.get("candidates_tried", 0) for p in parts)),
+        "parts": [
+            {
+                "part": p["part"],
+                "rows": p["rows"],
+                "accepted": p["accepted"],
+                "candidates_tried": p["candidates_tried"],
+                "inliers": p["inliers"],
+                "log10_nfa": p.get("log10_nfa"),
+                "homography": p.get("homography"),
+                "seconds": p.get("seconds"),
+            }
+            for p in parts
+        ],
+        "fuse": {k: v for k, v in fused.items() if k not in ("homography", "status", "reason")},
+        "geolocation": {"path": str(out_geoloc), **geo},
+    }
+    if fused["status"] != "registered":
+        reg["reason"] = fused.get("reason")
+    if truth:
+        t1 = time.perf_counter()
+        reg["evaluation"] = evaluate(H, truth, map_px)
+        timings["evaluation"] = time.perf_counter() - t1
+    timings["fuse_total"] = time.perf_counter() - t0
+    reg["timings_s"] = timings
+    write_json(out_json, reg)
+    return reg
+
+
+def _map_px(grid_path: str | None) -> float | None:
+    """Orthophoto pixel size from grid.json (map pixels for error reports)."""
+    import json
+    from pathlib import Path
+
+    if not grid_path or not Path(grid_path).exists():
+        return None
+    return abs(float(json.loads(Path(grid_path).read_text())["transform"][0]))

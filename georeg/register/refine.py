@@ -1,0 +1,691 @@
+"""Sub-pixel local refinement of a global registration (issue 12).
+
+One homography cannot follow a pushbroom cube: attitude jitter moves every line by a fraction of a
+pixel along and across track. This module corrects it with tie points measured against the map:
+
+1. The orthophoto is rendered into query geometry through the current mapping (so every remaining
+   misregistration is a small shift), and both images become CFOG-like structure channels
+   (``cfog``: |oriented gradient| in ``orientations`` directions over 180 deg, Gaussian-smoothed,
+   L2-normalised per pixel). The absolute value makes them insensitive to the contrast reversals
+   of the SWIR-visible spectral gap.
+2. At every point of a ``grid_step_px`` grid the query window (``window_px``) is matched over
+   integer shifts up to ``search_px`` by normalised cross-correlation of the channels, computed
+   for all points at once (one box filter per shift); the peak is refined by a 3 x 3 quadratic
+   fit. The peak NCC is the point's reliability score. Points are rejected by score, invalid
+   pixels, a peak on the search border, then by consistency with their neighbours.
+3. A displacement model ``D(col, row)`` (query pixels) is fitted: the refined mapping is
+   ``f(p) = H(p + D(p))`` where H is the global homography. Models: ``per_line`` (a penalised
+   cubic B-spline in the line of an offset and an across-track slope, for both components: the
+   pushbroom model: roll, pitch and yaw per line), ``polynomial`` (2-D, ``poly_degree``), ``tps``
+   (thin-plate spline with smoothing) and ``homography`` (D = 0). ``auto`` picks the model with
+   the lowest k-fold cross-validated tie-point residual (it must beat ``homography`` by
+   ``auto_min_gain``). Fewer than ``min_tie_points`` accepted points: the homography is kept.
+4. Window averaging attenuates fast jitter, so steps 1-3 are iterated (``iterations``): each pass
+   measures the residual shift against the current refined mapping and refits the total.
+   A last measurement pass against the final mapping gives the residuals "after".
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from georeg.register.geolocation import apply_h
+
+log = logging.getLogger(__name__)
+
+DEFAULTS: dict[str, Any] = {
+    "enabled": True,
+    "grid_step_px": 12,
+    "window_px": 32,
+    "search_px": 4,
+    "orientations": 9,
+    "cfog_sigma_px": 1.0,
+    "min_score": 0.25,
+    "min_valid_fraction": 0.8,
+    "consistency_px": 0.6,
+    "min_tie_points": 30,
+    "iterations": 3,
+    "model": "auto",
+    "line_knot_px": 16,
+    "line_smoothing": 0.02,
+    "line_terms": 3,
+    "poly_degree": 3,
+    "tps_smoothing": 1000.0,
+    "tps_max_points": 1500,
+    "cv_folds": 5,
+    "auto_min_gain": 0.05,
+    "auto_models": ["per_line", "polynomial"],
+    "seed": 0,
+}
+MODELS = ("per_line", "polynomial", "tps", "homography")
+
+
+def merged(conf: dict[str, Any] | None) -> dict[str, Any]:
+    c = dict(DEFAULTS)
+    c.update({k: v for k, v in (conf or {}).items() if v is not None})
+    return c
+
+
+# ----------------------------------------------------------------------------- images
+
+
+def cfog(
+    img: np.ndarray, valid: np.ndarray, orientations: int = 9, sigma: float = 1.0
+) -> np.ndarray:
+    """CFOG-like structure channels (C, H, W) float32: |oriented gradient|, smoothed, L2-normalised.
+
+    Invalid pixels (and their gradient neighbours) are 0.
+    """
+    f = np.where(valid, img, 0).astype(np.float32)
+    if (~valid).any():  # fill nodata with the valid mean to avoid false edges at the border
+        f[~valid] = float(f[valid].mean()) if valid.any() else 0.0
+    f = cv2.GaussianBlur(f, (0, 0), 0.7)
+    gx = cv2.Sobel(f, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(f, cv2.CV_32F, 0, 1, ksize=3)
+    th = np.pi * np.arange(orientations) / orientations
+    ch = np.empty((orientations, *f.shape), np.float32)
+    for k, t in enumerate(th):
+        ch[k] = cv2.GaussianBlur(np.abs(np.cos(t) * gx + np.sin(t) * gy), (0, 0), sigma)
+    # smoothing across orientation ([1 2 1], circular: 0 and 180 deg are the same direction)
+    ch = 0.25 * np.roll(ch, 1, 0) + 0.5 * ch + 0.25 * np.roll(ch, -1, 0)
+    ch /= np.sqrt((ch**2).sum(0)) + 1e-6 * (float(np.abs(ch).max()) + 1e-12)
+    good = cv2.erode(valid.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    ch[:, ~good] = 0
+    return ch
+
+
+@dataclass
+class MapImage:
+    """A gray map raster (float32, NaN = nodata) and its affine geotransform (rasterio order)."""
+
+    gray: np.ndarray
+    transform: Any
+
+    def render(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """The map sampled (bilinear) at map x, y: an image in query geometry, NaN outside."""
+        a, b, c, d, e, f = (float(v) for v in tuple(self.transform)[:6])
+        det = a * e - b * d
+        dx, dy = x - c, y - f
+        col = (e * dx - b * dy) / det - 0.5
+        row = (-d * dx + a * dy) / det - 0.5
+        ok = np.isfinite(col) & np.isfinite(row)
+        mx = np.where(ok, col, -1e6).astype(np.float32)
+        my = np.where(ok, row, -1e6).astype(np.float32)
+        g = self.gray
+        bad = ~np.isfinite(g)
+        src = np.where(bad, 0, g).astype(np.float32)
+        out = cv2.remap(
+            src, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+        )
+        inv = cv2.remap(
+            bad.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+            borderValue=1,
+        )  # fmt: skip
+        return np.where((inv < 1e-3) & ok, out, np.nan)
+
+
+def read_map_gray(path: str | Path, x: np.ndarray, y: np.ndarray, pad: float = 20.0) -> MapImage:
+    """The orthophoto (mosaic VRT) window covering map x, y (+ pad map units), as BT.601 gray."""
+    import rasterio
+    from rasterio.windows import Window, from_bounds
+
+    from georeg.index.features import rgb_to_gray
+    from georeg.io.errors import InputError
+
+    ok = np.isfinite(x) & np.isfinite(y)
+    try:
+        with rasterio.open(path) as ds:
+            p = pad * abs(ds.transform.a)
+            win = from_bounds(x[ok].min() - p, y[ok].min() - p, x[ok].max() + p, y[ok].max() + p,
+                              ds.transform)  # fmt: skip
+            c0, r0 = max(0, int(np.floor(win.col_off))), max(0, int(np.floor(win.row_off)))
+            c1 = min(ds.width, int(np.ceil(win.col_off + win.width)))
+            r1 = min(ds.height, int(np.ceil(win.row_off + win.height)))
+            if c1 <= c0 or r1 <= r0:
+                raise InputError(path, "the registered footprint does not overlap the orthophoto")
+            w = Window(c0, r0, c1 - c0, r1 - r0)
+            data = ds.read(window=w)
+            mask = ds.read_masks(1, window=w) > 0
+            tr = ds.window_transform(w)
+    except rasterio.errors.RasterioIOError as exc:
+        raise InputError(path, f"cannot read the orthophoto: {exc}") from exc
+    gray = rgb_to_gray(data[:3] if data.shape[0] >= 3 else data[0]).astype(np.float32)
+    return MapImage(np.where(mask, gray, np.nan), tr)
+
+
+# ----------------------------------------------------------------------------- tie points
+
+
+def grid_points(width: int, height: int, step: int, window: int) -> np.ndarray:
+    """Window centres (N, 2) (col, row) on a regular grid from step/2 to the far edge.
+
+    Windows near the edge are clipped by the image (see ``window_centroid``).
+    """
+    h = max(1, min(window // 2, step // 2))
+    cols = np.arange(h, width - h + 1e-9, step, dtype=np.float64)
+    rows = np.arange(h, height - h + 1e-9, step, dtype=np.float64)
+    if cols.size == 0 or rows.size == 0:
+        return np.zeros((0, 2))
+    cc, rr = np.meshgrid(cols, rows)
+    return np.column_stack([cc.ravel(), rr.ravel()])
+
+
+def window_centroid(pts: np.ndarray, width: int, height: int, window: int) -> np.ndarray:
+    """Centre of each window clipped to the image: where a clipped window's shift applies."""
+    h = window // 2
+    out = np.empty_like(pts)
+    for k, n in ((0, width), (1, height)):
+        lo = np.maximum(np.round(pts[:, k]) - h, 0)
+        hi = np.minimum(np.round(pts[:, k]) - h + window - 1, n - 1)
+        out[:, k] = 0.5 * (lo + hi)
+    return out
+
+
+def _quad_peak(s: np.ndarray) -> tuple[float, float]:
+    """Sub-pixel offset (dx, dy) of the maximum of a 3 x 3 patch (quadratic least squares)."""
+    yy, xx = np.mgrid[-1:2, -1:2]
+    A = np.column_stack([np.ones(9), xx.ravel(), yy.ravel(), xx.ravel() ** 2, (xx * yy).ravel(),
+                         yy.ravel() ** 2])  # fmt: skip
+    a = np.linalg.lstsq(A, s.ravel(), rcond=None)[0]
+    M = np.array([[2 * a[3], a[4]], [a[4], 2 * a[5]]])
+    if np.linalg.det(M) > 0 and M[0, 0] < 0:
+        d = np.linalg.solve(M, -a[1:3])
+        if np.all(np.abs(d) <= 1.0):
+            return float(d[0]), float(d[1])
+    # separable parabolas
+    out = []
+    for lo, c, hi in ((s[1, 0], s[1, 1], s[1, 2]), (s[0, 1], s[1, 1], s[2, 1])):
+        den = lo - 2 * c + hi
+        out.append(float(np.clip(0.5 * (lo - hi) / den, -0.5, 0.5)) if den < 0 else 0.0)
+    return out[0], out[1]
+
+
+def measure_shifts(
+    qf: np.ndarray,
+    rf: np.ndarray,
+    qvalid: np.ndarray,
+    rvalid: np.ndarray,
+    pts: np.ndarray,
+    window: int,
+    search: int,
+    min_valid: float = 0.8,
+) -> dict[str, np.ndarray]:
+    """Shift (dcol, drow) of the map features ``rf`` that best matches ``qf`` around each point.
+
+    The query window centred on point p matches the rendered map window centred on p + shift.
+    Returns shift (N, 2), score (N: peak NCC, NaN when not measurable), border (N: peak on the
+    search border) and valid (N: enough valid pixels in both windows).
+    """
+    C, H, W = qf.shape
+    n = len(pts)
+    ci = np.round(pts[:, 0]).astype(int)
+    ri = np.round(pts[:, 1]).astype(int)
+    k = (window, window)
+
+    def box(a: np.ndarray) -> np.ndarray:
+        return cv2.boxFilter(a, cv2.CV_32F, k, normalize=False, borderType=cv2.BORDER_CONSTANT)
+
+    r = search
+    qv = qvalid.astype(np.float32)
+    qsum = box(qf.sum(0))[ri, ci].astype(np.float64)
+    qsq = box((qf**2).sum(0))[ri, ci].astype(np.float64)
+    qcount = box(qv)[ri, ci].astype(np.float64)
+    pad = ((0, 0), (r, r), (r, r))
+    rpad = np.pad(rf, pad)
+    rvpad = np.pad(rvalid.astype(np.float32), ((r, r), (r, r)))
+    rsum_full = np.pad(box(rf.sum(0)), ((r, r), (r, r)))
+    rsq_full = np.pad(box((rf**2).sum(0)), ((r, r), (r, r)))
+    rcnt_full = np.pad(box(rvalid.astype(np.float32)), ((r, r), (r, r)))
+    del rvpad
+    side = 2 * r + 1
+    ncc = np.full((n, side, side), -1.0)
+    mincount = np.zeros(n)
+    nn = np.maximum(C * qcount, 1.0)  # pooled over the valid query pixels of each window
+    mincount[:] = qcount
+    for iy, dy in enumerate(range(-r, r + 1)):
+        for ix, dx in enumerate(range(-r, r + 1)):
+            rs = rpad[:, r + dy : r + dy + H, r + dx : r + dx + W]
+            sqr = box(np.einsum("chw,chw->hw", qf, rs, optimize=True))[ri, ci].astype(np.float64)
+            rr, cc = ri + r + dy, ci + r + dx
+            s_r, s_rr = rsum_full[rr, cc].astype(np.float64), rsq_full[rr, cc].astype(np.float64)
+            cov = sqr - qsum * s_r / nn
+            var = (qsq - qsum**2 / nn) * (s_rr - s_r**2 / nn)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                ncc[:, iy, ix] = np.where(var > 1e-12, cov / np.sqrt(np.maximum(var, 1e-30)), -1.0)
+            mincount = np.minimum(mincount, rcnt_full[rr, cc])
+    # a window clipped by the image edge counts its inside part
+    inside = np.ones(n)
+    for cc, size in ((ci, W), (ri, H)):
+        lo = np.maximum(cc - window // 2, 0)
+        hi = np.minimum(cc - window // 2 + window, size)
+        inside *= (hi - lo) / window
+    valid = mincount >= min_valid * inside * window * window
+    flat = ncc.reshape(n, -1)
+    best = flat.argmax(1)
+    by, bx = np.unravel_index(best, (side, side))
+    score = flat[np.arange(n), best]
+    border = (by == 0) | (bx == 0) | (by == side - 1) | (bx == side - 1)
+    shift = np.column_stack([bx - r, by - r]).astype(np.float64)
+    for i in np.flatnonzero(~border & valid):
+        dx, dy = _quad_peak(ncc[i, by[i] - 1 : by[i] + 2, bx[i] - 1 : bx[i] + 2])
+        shift[i] += (dx, dy)
+    score = np.where(valid, score, np.nan)
+    return {"shift": shift, "score": score, "border": border, "valid": valid}
+
+
+def consistent(pts: np.ndarray, vec: np.ndarray, radius: float, tol: float) -> np.ndarray:
+    """True where a vector agrees with the median of its neighbours within ``radius``.
+
+    The bound is max(tol, 3 x the neighbourhood's robust spread). Points without neighbours pass.
+    """
+    from scipy.spatial import cKDTree
+
+    ok = np.ones(len(pts), bool)
+    if len(pts) < 3:
+        return ok
+    tree = cKDTree(pts)
+    for i, nb in enumerate(tree.query_ball_point(pts, radius)):
+        nb = [j for j in nb if j != i]
+        if len(nb) < 2:
+            continue
+        v = vec[nb]
+        med = np.median(v, 0)
+        spread = 1.4826 * np.median(np.hypot(*(v - med).T))
+        ok[i] = np.hypot(*(vec[i] - med)) <= max(tol, 3 * spread)
+    return ok
+
+
+# ----------------------------------------------------------------------------- models
+
+
+def _bspline_basis(t: np.ndarray, lo: float, hi: float, spacing: float) -> np.ndarray:
+    """Cubic B-spline basis (len(t), m) with uniform knots every ``spacing`` over [lo, hi]."""
+    from scipy.interpolate import BSpline
+
+    nseg = max(1, int(np.ceil((hi - lo) / max(spacing, 1e-9))))
+    step = (hi - lo) / nseg if hi > lo else 1.0
+    knots = lo + step * np.arange(-3, nseg + 4)
+    m = len(knots) - 4
+    tt = np.clip(t, lo, hi)
+    return BSpline.design_matrix(tt, knots, 3, extrapolate=True).toarray()[:, :m]
+
+
+class Model:
+    """A displacement field D(col, row) -> (dcol, drow) in query pixels."""
+
+    name = "homography"
+
+    def fit(self, pts: np.ndarray, d: np.ndarray, w: np.ndarray | None = None) -> Model:
+        return self
+
+    def __call__(self, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+        return np.zeros((*np.shape(col), 2))
+
+
+class PerLine(Model):
+    """Per-line pushbroom model: D(c, r) = a(r) + b(r) s, s = (c - w/2) / (w/2); a, b P-splines."""
+
+    name = "per_line"
+
+    def __init__(self, width: int, height: int, knot_px: float, smoothing: float, terms: int = 3):
+        self.width, self.height, self.knot, self.lam = width, height, knot_px, smoothing
+        self.terms = max(1, int(terms))
+
+    def _s(self, col: np.ndarray) -> np.ndarray:
+        return (np.asarray(col, float) - self.width / 2) / (self.width / 2)
+
+    def _design(self, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+        B = _bspline_basis(np.ravel(row), 0.0, self.height - 1.0, self.knot)
+        s = self._s(np.ravel(col))[:, None]
+        return np.hstack([B * s**k for k in range(self.terms)])
+
+    def fit(self, pts: np.ndarray, d: np.ndarray, w: np.ndarray | None = None) -> PerLine:
+        A = self._design(pts[:, 0], pts[:, 1])
+        n = A.shape[1]
+        m = n // self.terms
+        w = np.ones(len(pts)) if w is None else w
+        D2 = np.diff(np.eye(m), 2, axis=0)
+        P = np.kron(np.eye(self.terms), D2.T @ D2)
+        Aw = A * w[:, None]
+        lam = self.lam * float(w.sum()) / m  # per knot: independent of the tie-point density
+        N = A.T @ Aw + lam * P + 1e-8 * np.eye(n)
+        self.coef = np.linalg.solve(N, Aw.T @ d)
+        return self
+
+    def __call__(self, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+        col, row = np.broadcast_arrays(np.asarray(col, float), np.asarray(row, float))
+        if col.ndim == 2 and np.all(row == row[:, :1]):  # full image: per line, cheap
+            r = row[:, 0]
+            B = _bspline_basis(r, 0.0, self.height - 1.0, self.knot)
+            m = B.shape[1]
+            s = self._s(col)[..., None]
+            out = np.zeros((*col.shape, 2))
+            for k in range(self.terms):
+                out += (B @ self.coef[k * m : (k + 1) * m])[:, None, :] * s**k
+            return out
+        return (self._design(col, row) @ self.coef).reshape(*col.shape, 2)
+
+
+class Polynomial(Model):
+    name = "polynomial"
+
+    def __init__(self, width: int, height: int, degree: int):
+        self.width, self.height, self.deg = width, height, degree
+
+    def _design(self, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+        u = 2 * np.ravel(col) / max(self.width - 1, 1) - 1
+        v = 2 * np.ravel(row) / max(self.height - 1, 1) - 1
+        return np.column_stack(
+            [u**i * v**j for i in range(self.deg + 1) for j in range(self.deg + 1 - i)]
+        )
+
+    def fit(self, pts: np.ndarray, d: np.ndarray, w: np.ndarray | None = None) -> Polynomial:
+        A = self._design(pts[:, 0], pts[:, 1])
+        sw = np.sqrt(np.ones(len(pts)) if w is None else w)
+        self.coef = np.linalg.lstsq(A * sw[:, None], d * sw[:, None], rcond=None)[0]
+        return self
+
+    def __call__(self, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+        col, row = np.broadcast_arrays(np.asarray(col, float), np.asarray(row, float))
+        return (self._design(col, row) @ self.coef).reshape(*col.shape, 2)
+
+
+class ThinPlate(Model):
+    name = "tps"
+
+    def __init__(self, smoothing: float, max_points: int, seed: int):
+        self.smoothing, self.max_points, self.seed = smoothing, max_points, seed
+
+    def fit(self, pts: np.ndarray, d: np.ndarray, w: np.ndarray | None = None) -> ThinPlate:
+        from scipy.interpolate import RBFInterpolator
+
+        if len(pts) > self.max_points:
+            idx = np.random.default_rng(self.seed).choice(len(pts), self.max_points, replace=False)
+            pts, d = pts[idx], d[idx]
+        self.rbf = RBFInterpolator(pts, d, kernel="thin_plate_spline", smoothing=self.smoothing,
+                                   degree=1)  # fmt: skip
+        return self
+
+    def __call__(self, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+        col, row = np.broadcast_arrays(np.asarray(col, float), np.asarray(row, float))
+        if col.ndim == 2 and col.size > 20000:  # full image: evaluate every 4 px, interpolate
+            h, w = col.shape
+            step = 4
+            gc, gr = np.arange(0, w + step, step, float), np.arange(0, h + step, step, float)
+            cc, rr = np.meshgrid(gc, gr)
+            g = self.rbf(np.column_stack([cc.ravel(), rr.ravel()])).reshape(*cc.shape, 2)
+            mx, my = (col / step).astype(np.float32), (row / step).astype(np.float32)
+            out = np.empty((h, w, 2))
+            for k in range(2):
+                out[..., k] = cv2.remap(g[..., k].astype(np.float32), mx, my, cv2.INTER_LINEAR,
+                                        borderMode=cv2.BORDER_REPLICATE)  # fmt: skip
+            return out
+        return self.rbf(np.column_stack([col.ravel(), row.ravel()])).reshape(*col.shape, 2)
+
+
+def make_model(name: str, width: int, height: int, c: dict[str, Any]) -> Model:
+    if name == "per_line":
+        return PerLine(
+            width,
+            height,
+            float(c["line_knot_px"]),
+            float(c["line_smoothing"]),
+            int(c["line_terms"]),
+        )
+    if name == "polynomial":
+        return Polynomial(width, height, int(c["poly_degree"]))
+    if name == "tps":
+        return ThinPlate(float(c["tps_smoothing"]), int(c["tps_max_points"]), int(c["seed"]))
+    if name == "homography":
+        return Model()
+    raise ValueError(f"unknown refine model {name!r} (expected auto or one of {MODELS})")
+
+
+def cross_validate(name: str, pts: np.ndarray, d: np.ndarray, w: np.ndarray, width: int,
+                   height: int, c: dict[str, Any]) -> float:  # fmt: skip
+    """k-fold cross-validated RMS tie-point residual (query px) of a model."""
+    k = max(2, int(c["cv_folds"]))
+    # spatial blocks (2 windows square) go to folds at random: neighbouring tie points share
+    # pixels, so leaving single points out would favour interpolating models
+    side = 2.0 * float(c["window_px"])
+    bc, br = (pts[:, 0] // side).astype(int), (pts[:, 1] // side).astype(int)
+    block = bc * 100003 + br
+    ub, inv = np.unique(block, return_inverse=True)
+    fold = (np.random.default_rng(int(c["seed"])).permutation(len(ub)) % k)[inv]
+    err = np.empty(len(pts))
+    for f in range(k):
+        test = fold == f
+        m = make_model(name, width, height, c).fit(pts[~test], d[~test], w[~test])
+        err[test] = np.hypot(*(d[test] - m(pts[test, 0], pts[test, 1])).T)
+    return float(np.sqrt(np.mean(err**2)))
+
+
+# ----------------------------------------------------------------------------- the loop
+
+
+def _stats(v: np.ndarray) -> dict[str, float | None]:
+    n = np.hypot(*v.T) if len(v) else np.zeros(0)
+    if n.size == 0:
+        return {"median": None, "p90": None, "max": None, "rms": None}
+    return {
+        "median": float(np.median(n)),
+        "p90": float(np.percentile(n, 90)),
+        "max": float(n.max()),
+        "rms": float(np.sqrt(np.mean(n**2))),
+    }
+
+
+def refine(
+    band: np.ndarray,
+    H: np.ndarray,
+    map_image: MapImage,
+    conf: dict[str, Any] | None = None,
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """Refine the mapping query pixel (col, row) -> map (x, y) of ``band`` beyond the homography H.
+
+    ``band``: the query band (uint8, 0 = nodata, or float with NaN). Returns the refined x, y of
+    every pixel centre and a report (tie points, residuals before/after, model chosen, timings).
+    """
+    t0 = time.perf_counter()
+    c = merged(conf)
+    h, w = band.shape
+    H = np.asarray(H, np.float64)
+    qvalid = (band > 0) if band.dtype == np.uint8 else np.isfinite(band)
+    qf = cfog(band.astype(np.float32), qvalid, int(c["orientations"]), float(c["cfog_sigma_px"]))
+    win, step, search = int(c["window_px"]), int(c["grid_step_px"]), int(c["search_px"])
+    centres = grid_points(w, h, step, win)  # window centres: where the shifts are measured
+    pts = window_centroid(centres, w, h, win)  # where they apply (clipped windows at the edge)
+    cols = np.arange(w, dtype=np.float64)[None, :]
+    rows = np.arange(h, dtype=np.float64)[:, None]
+    requested = str(c["model"])
+    if requested != "auto" and requested not in MODELS:
+        raise ValueError(f"unknown refine model {requested!r} (expected auto or one of {MODELS})")
+    model: Model = Model()
+    D = np.zeros((h, w, 2))
+    info: dict[str, Any] = {"requested_model": requested, "grid_points": int(len(pts))}
+    history: list[dict[str, Any]] = []
+    before = None
+    final = None
+    chosen = "homography"
+    cv: dict[str, float] = {}
+    n_iter = max(1, int(c["iterations"]))
+    for it in range(n_iter + 1):
+        x, y = apply_h(H, cols + D[..., 0], rows + D[..., 1])
+        rendered = map_image.render(x, y)
+        rvalid = np.isfinite(rendered)
+        rf = cfog(
+            np.nan_to_num(rendered), rvalid, int(c["orientations"]), float(c["cfog_sigma_px"])
+        )
+        m = measure_shifts(
+            qf, rf, qvalid, rvalid, centres, win, search, float(c["min_valid_fraction"])
+        )
+        ok = m["valid"] & ~m["border"] & (m["score"] >= float(c["min_score"]))
+        Dp = model(pts[:, 0], pts[:, 1]) if len(pts) else np.zeros((0, 2))
+        target = Dp + m["shift"]
+        if ok.sum() >= 3:
+            ok[ok] &= consistent(pts[ok], target[ok], 2.5 * step, float(c["consistency_px"]))
+        entry = {
+            "iteration": it,
+            "measured": int(m["valid"].sum()),
+            "accepted": int(ok.sum()),
+            "residual_px": _stats(m["shift"][ok]),
+        }
+        history.append(entry)
+        log.info("refine pass %d: %d/%d tie points accepted, residual median %s px", it,
+                 ok.sum(), len(pts), entry["residual_px"]["median"])  # fmt: skip
+        if it == 0:
+            before = {"m": m, "ok": ok}
+        if it == n_iter or (it > 0 and chosen == "homography"):
+            final = {"m": m, "ok": ok}
+            break
+        if ok.sum() < int(c["min_tie_points"]):
+            info["fallback"] = (
+                f"{int(ok.sum())} tie points accepted < min_tie_points {c['min_tie_points']}"
+            )
+            chosen, model, D = "homography", Model(), np.zeros((h, w, 2))
+            final = {"m": m, "ok": ok} if it == 0 else None
+            if final is None:  # re-measure against the homography for the "after" residuals
+                continue
+            break
+        wts = np.clip(m["score"][ok], 0.05, 1.0)
+        if it == 0:
+            if requested == "auto":
+                cands = [n for n in MODELS[:-1] if n in c["auto_models"]]
+                for name in [*cands, "homography"]:
+                    cv[name] = cross_validate(name, pts[ok], target[ok], wts, w, h, c)
+                if "per_line" in cands:  # the smoothing too, by the same blocked CV
+                    lam0 = float(c["line_smoothing"])
+                    for f in (10.0, 100.0):
+                        cf = {**c, "line_smoothing": lam0 * f}
+                        e = cross_validate("per_line", pts[ok], target[ok], wts, w, h, cf)
+                        if e < cv["per_line"]:
+                            cv["per_line"], c = e, cf
+                    info["line_smoothing"] = float(c["line_smoothing"])
+                # simplest first (MODELS order: per_line, the pushbroom model, then polynomial,
+                # tps, homography): a later model must beat the current choice by auto_min_gain
+                gain = 1 - float(c["auto_min_gain"])
+                chosen = "homography"
+                for name in cands:
+                    if cv[name] < gain * cv[chosen]:
+                        chosen = name
+            else:
+                chosen = requested
+        model = make_model(chosen, w, h, c).fit(pts[ok], target[ok], wts)
+        D = model(np.broadcast_to(cols, (h, w)), np.broadcast_to(rows, (h, w)))
+    assert before is not None and final is not None
+    x, y = apply_h(H, cols + D[..., 0], rows + D[..., 1])
+    bm, bok = before["m"], before["ok"]
+    fm, fok = final["m"], final["ok"]
+    info.update(
+        {
+            "model": chosen,
+            "cv_rms_px": cv or None,
+            "tie_points": int(bok.sum()),
+            "tie_points_after": int(fok.sum()),
+            "residual_before_px": _stats(bm["shift"][bok]),
+            "residual_after_px": _stats(fm["shift"][fok]),
+            "iterations": history,
+            "correction_px": _stats(D.reshape(-1, 2)[:: max(1, D.size // 2 // 200000)]),
+            "seconds": time.perf_counter() - t0,
+            "points": {
+                "col": pts[:, 0].tolist(),
+                "row": pts[:, 1].tolist(),
+                "score": [None if not np.isfinite(s) else round(float(s), 3) for s in bm["score"]],
+                "accepted": bok.tolist(),
+                "before": np.round(bm["shift"], 3).tolist(),
+                "after": np.round(fm["shift"], 3).tolist(),
+                "accepted_after": fok.tolist(),
+            },
+        }
+    )
+    return x, y, info
+
+
+# ----------------------------------------------------------------------------- the rule
+
+
+def _query_px_m(H: np.ndarray, width: int, height: int) -> float:
+    """Ground size of one query pixel at the image centre (sqrt of the local Jacobian's area)."""
+    c, r = (
+        np.array([width / 2, width / 2 + 1, width / 2]),
+        np.array([height / 2] * 2 + [height / 2 + 1]),
+    )
+    x, y = apply_h(H, c, r)
+    return float(np.sqrt(abs((x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0]))))
+
+
+def run_refine(
+    band_tif: str,
+    reg_json: str,
+    geoloc_tif: str,
+    ortho: str,
+    dsm: str | None,
+    truth: str | None,
+    conf: dict[str, Any],
+    out_json: str,
+    out_geoloc: str,
+) -> dict[str, Any]:
+    """Rule refine_registration: global registration -> refined registration.json + geolocation.tif.
+
+    Disabled, not registered, or too few tie points: the global geometry is written unchanged
+    (``refine.model`` says ``homography`` and why).
+    """
+    import json
+    import shutil
+
+    from georeg.io.atomic import atomic_path, write_json
+    from georeg.register.band import read_query_band
+    from georeg.register.geolocation import evaluate, write_geolocation
+
+    t0 = time.perf_counter()
+    c = merged(conf)
+    reg = json.loads(Path(reg_json).read_text())
+    reg["refine"] = {"enabled": bool(c["enabled"]), "model": "homography"}
+    timings = reg.setdefault("timings_s", {})
+    if reg.get("evaluation") is not None:
+        reg["evaluation_global"] = reg["evaluation"]
+    H = reg.get("homography")
+    if not c["enabled"] or reg.get("status") != "registered" or H is None:
+        reason = "disabled" if not c["enabled"] else "query not registered"
+        reg["refine"]["reason"] = reason
+        with atomic_path(out_geoloc) as tmp:
+            shutil.copyfile(geoloc_tif, tmp)
+        reg.setdefault("geolocation", {})["path"] = str(out_geoloc)
+        timings["refine"] = time.perf_counter() - t0
+        write_json(out_json, reg)
+        log.info("refinement skipped: %s", reason)
+        return reg
+    H = np.asarray(H, np.float64)
+    band = read_query_band(band_tif)
+    h, w = band.shape
+    x0, y0 = apply_h(H, np.arange(w, dtype=float)[None, :], np.arange(h, dtype=float)[:, None])
+    map_image = read_map_gray(ortho, x0, y0, pad=4.0 * float(c["search_px"]) + 8.0)
+    x, y, info = refine(band, H, map_image, c)
+    qpx = _query_px_m(H, w, h)
+    info["query_px_m"] = qpx
+    info["enabled"] = True
+    t1 = time.perf_counter()
+    geo = write_geolocation(out_geoloc, H, w, h, dsm, reg.get("crs"), xy=(x, y))
+    timings["refine_geolocation"] = time.perf_counter() - t1
+    reg["geolocation"] = {"path": str(out_geoloc), **geo, "model": info["model"]}
+    reg["refine"] = info
+    if truth:
+        map_px = float(reg.get("map_px_m") or 1.0)
+        reg["evaluation"] = evaluate(None, truth, map_px, xy=(x, y))
+        info["evaluation"] = {
+            "before_px": (reg.get("evaluation_global") or {}).get("px"),
+            "after_px": reg["evaluation"].get("px"),
+        }
+    timings["refine"] = time.perf_counter() - t0
+    write_json(out_json, reg)
+    log.info("refinement: model %s, %d tie points, residual median %.3f -> %.3f query px",
+             info["model"], info["tie_points"], info["residual_before_px"]["median"] or float("nan"),
+             info["residual_after_px"]["median"] or float("nan"))  # fmt: skip
+    return reg

@@ -1,0 +1,534 @@
+"""Search the map for one part of the query: `paper` (random neighbourhoods) or `index` (TF-IDF).
+
+Every candidate region tried is recorded (centre, bounds, score, matches, inliers, NFA, accepted)
+so that a later stage can draw the search.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from georeg.index.features import dequantize, detect_and_describe, resample
+from georeg.register import acceptance, crossspectral, matching
+
+log = logging.getLogger(__name__)
+
+Bounds = tuple[float, float, float, float]
+
+
+# ----------------------------------------------------------------------------- map side
+
+
+@dataclass
+class MapSource:
+    """The map's features: positions (map x, y), descriptors, feature GSD, CRS; optional index."""
+
+    xy: np.ndarray
+    desc: np.ndarray
+    gsd_m: float
+    crs_wkt: str | None = None
+    index: Any = None  # georeg.index.map_index.MapIndex when loaded from disk
+    angle: np.ndarray | None = None  # (n,) keypoint orientation (degrees), plain arrays only
+    scale: np.ndarray | None = None  # (n,) keypoint diameter in map units, plain arrays only
+
+    @classmethod
+    def from_index(cls, path: str | Path) -> MapSource:
+        """Load a built map index (memory-mapped)."""
+        from georeg.index.map_index import MapIndex
+
+        idx = MapIndex.load(path)
+        gsd = idx.gsd_m or (idx.meta.get("features_conf") or {}).get("gsd_m") or 1.0
+        return cls(idx.xy, idx.desc, float(gsd), idx.crs_wkt, idx)
+
+    @property
+    def features_conf(self) -> dict[str, Any] | None:
+        """The feature settings the map was built with (the query must use the same)."""
+        return None if self.index is None else self.index.meta.get("features_conf")
+
+    @property
+    def bounds(self) -> Bounds:
+        """Extent of all map features."""
+        if self.index is not None:
+            b = np.asarray(self.index.tile_bounds, np.float64)
+            b = b[np.isfinite(b).all(axis=1)]
+            return (b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max())
+        xy = np.asarray(self.xy)
+        return (*xy.min(axis=0), *xy.max(axis=0))  # type: ignore[return-value]
+
+    def features_in(self, bounds: Bounds) -> np.ndarray:
+        """Ids of the map features inside ``bounds``."""
+        if self.index is not None:
+            return self.index.features_in(bounds)
+        xy = np.asarray(self.xy)
+        x0, y0, x1, y1 = bounds
+        inside = (xy[:, 0] >= x0) & (xy[:, 0] <= x1) & (xy[:, 1] >= y0) & (xy[:, 1] <= y1)
+        return np.flatnonzero(inside)
+
+    def geometry(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """(angle degrees, keypoint diameter in map units) of feature ids, or None if unknown."""
+        if self.index is None or not hasattr(self.index, "angle"):
+            if self.angle is None or self.scale is None:
+                return None
+            return np.asarray(self.angle[ids], np.float64), np.asarray(self.scale[ids], np.float64)
+        return (
+            np.asarray(self.index.angle[ids], np.float64),
+            np.asarray(self.index.scale[ids], np.float64),
+        )
+
+    def take(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(xy float64, desc float32) of feature ids."""
+        return np.asarray(self.xy[ids], np.float64), dequantize(np.asarray(self.desc[ids]))
+
+
+# ----------------------------------------------------------------------------- query side
+
+
+@dataclass
+class QueryFeatures:
+    """Features of (a part of) the query, positions in original query pixels (col, row)."""
+
+    xy: np.ndarray
+    desc: np.ndarray
+    response: np.ndarray
+    width: int
+    height: int
+    origin: tuple[int, int]  # (col0, row0) of this part in the full query
+    factors: list[float]
+    angle: np.ndarray | None = None  # (n,) keypoint orientation, degrees (OpenCV, row-down)
+    size: np.ndarray | None = None  # (n,) keypoint diameter in feature pixels (at the map's GSD)
+
+    def __len__(self) -> int:
+        return len(self.xy)
+
+
+def part_rows(height: int, parts: int, part: int) -> tuple[int, int]:
+    """Rows [r0, r1) of part ``part`` of ``parts`` equal along-track slices."""
+    edges = np.linspace(0, height, parts + 1).round().astype(int)
+    return int(edges[part]), int(edges[part + 1])
+
+
+def query_features(
+    band_u8: np.ndarray,
+    rows: tuple[int, int],
+    factors: list[float],
+    features_conf: dict[str, Any] | None,
+) -> QueryFeatures:
+    """Detect features on rows ``rows`` of the band at each resize factor; pool them.
+
+    ``band_u8``: stretched band, 0 = nodata. A factor brings the query to the map's feature GSD
+    (query_gsd / feature_gsd); keypoints are mapped back to original query pixels.
+    """
+    r0, r1 = rows
+    img = np.ascontiguousarray(band_u8[r0:r1])
+    mask = img > 0
+    xs, ds, rs, angs, sizes = [], [], [], [], []
+    for f in factors:
+        im, m, (sx, sy) = resample(img, float(f), mask)
+        feats = detect_and_describe(im, m, features_conf or {})
+        if len(feats) == 0:
+            continue
+        xy = (feats.xy.astype(np.float64) + 0.5) * np.array([sx, sy]) - 0.5
+        xy[:, 1] += r0
+        xs.append(xy)
+        ds.append(feats.desc)
+        rs.append(feats.response)
+        angs.append(feats.angle.astype(np.float64))
+        sizes.append(feats.scale.astype(np.float64))
+    if not xs:
+        z = np.zeros(0)
+        return QueryFeatures(
+            np.zeros((0, 2)),
+            np.zeros((0, 128), np.float32),
+            z,
+            img.shape[1],
+            r1 - r0,
+            (0, r0),
+            factors,
+        )
+    return QueryFeatures(
+        np.concatenate(xs),
+        np.concatenate(ds).astype(np.float32),
+        np.concatenate(rs),
+        img.shape[1],
+        r1 - r0,
+        (0, r0),
+        list(factors),
+        np.concatenate(angs),
+        np.concatenate(sizes),
+    )
+
+
+# ----------------------------------------------------------------------------- verification
+
+
+def verify(
+    qf: QueryFeatures,
+    source: MapSource,
+    bounds: Bounds,
+    conf: dict[str, Any],
+    gsd_m: float | None,
+    n_candidates: int = 1,
+    seed: int = 0,
+    max_matches: int | None = None,
+    guide: tuple[np.ndarray, float] | None = None,
+) -> tuple[dict[str, Any], matching.Matches | None, matching.HomographyFit | None]:
+    """Match the part against the map features in ``bounds``; fit, then accept or reject.
+
+    ``guide`` = (H, radius): keep only matches whose map point lies within ``radius`` (map units)
+    of H's prediction (guided matching around an already accepted homography).
+    """
+    t0 = time.perf_counter()
+    ids = source.features_in(bounds)
+    rec: dict[str, Any] = {
+        "bounds": [float(v) for v in bounds],
+        "centre": [0.5 * (bounds[0] + bounds[2]), 0.5 * (bounds[1] + bounds[3])],
+        "map_features": len(ids),
+        "matches": 0,
+        "inliers": 0,
+        "accepted": False,
+    }
+    if len(ids) < 8 or len(qf) < 4:
+        rec.update(reason="too few features", seconds=time.perf_counter() - t0)
+        return rec, None, None
+    mxy, mdesc = source.take(ids)
+    knn = matching.knn2(mdesc)
+    nt = conf.get("max_matches", 100) if max_matches is None else max_matches
+    hyps = _hypotheses(qf, source, ids, mxy, knn, conf, nt, mdesc, guide)
+    rec["matcher"] = hyps[0][2]
+    ext = mxy.max(axis=0) - mxy.min(axis=0)
+    area_px = float(max(ext[0], source.gsd_m) * max(ext[1], source.gsd_m)) / source.gsd_m**2
+    best: tuple | None = None
+    for m, n_tests, _kind in hyps:
+        if guide is not None:
+            d = np.linalg.norm(matching.apply_h(guide[0], m.q_xy) - m.m_xy, axis=1)
+            keep = np.flatnonzero(d <= guide[1])
+            rec["guided_dropped"] = len(m) - len(keep)
+            m = matching.Matches(
+                m.q_idx[keep], m.m_idx[keep], m.q_xy[keep], m.m_xy[keep], m.dist[keep], m.n_examined
+            )
+        if len(m) < 4:
+            if best is None:
+                best = ((False, -math.inf, len(m)), m, None, None)
+            continue
+        fit = matching.fit_homography(m.q_xy, m.m_xy, source.gsd_m, conf.get("ransac", {}), seed)
+        dec = acceptance.decide(
+            fit.H,
+            fit.residual_px,
+            fit.n_inliers,
+            area_px,
+            qf.width,
+            qf.height,
+            gsd_m,
+            conf.get("acceptance", {}),
+            n_candidates=n_candidates * n_tests,
+            origin=qf.origin,
+            inlier_q_xy=None if fit.H is None else m.q_xy[fit.inliers],
+        )
+        lnfa = dec.get("log10_nfa")
+        key = (
+            bool(dec["accepted"]),
+            -lnfa if lnfa is not None and math.isfinite(lnfa) else -math.inf,
+            len(m),
+        )
+        if best is None or best[2] is None or key > best[0]:
+            best = (key, m, fit, dec)
+    assert best is not None
+    _key, m, fit, dec = best
+    rec["matches"] = len(m)
+    rec["query_examined"] = m.n_examined
+    if fit is None:
+        rec.update(reason="fewer than 4 matches", seconds=time.perf_counter() - t0)
+        return rec, m, None
+    rec.update(
+        inliers=fit.n_inliers,
+        accepted=bool(dec["accepted"]),
+        log10_nfa=dec.get("log10_nfa"),
+        reason=dec.get("reason", ""),
+        plausibility={k: v for k, v in (dec.get("plausibility") or {}).items() if k != "ok"},
+        spread=dec.get("spread"),
+        ransac_rounds=fit.rounds,
+        ransac_s=round(fit.seconds, 4),
+        residual_px=fit.rms_px,
+        area_px=area_px,
+        homography=None if fit.H is None else fit.H.tolist(),
+        seconds=time.perf_counter() - t0,
+    )
+    return rec, m, fit
+
+
+# ----------------------------------------------------------------------------- candidates
+
+
+def _hypotheses(
+    qf: QueryFeatures,
+    source: MapSource,
+    ids: np.ndarray,
+    mxy: np.ndarray,
+    knn: matching.KnnFn,
+    conf: dict[str, Any],
+    nt: int | None,
+    mdesc: np.ndarray | None = None,
+    guide: tuple[np.ndarray, float] | None = None,
+) -> list[tuple[matching.Matches, int, str]]:
+    """Correspondence sets to fit, each with its multiple-test count: ``register.matcher``.
+
+    ``paper``: one set, the paper's ratio test (``register.ratio``, stop at Nt). ``vote``
+    (issue 11): both contrast polarities of the query, a loose ratio, keypoint-size agreement and
+    the strongest rotation peaks (georeg.register.crossspectral.rotation_hypotheses); falls back to
+    ``paper`` when the map or the query has no keypoint geometry. With ``guide`` = (H, radius)
+    (the fuse stage's re-match around an accepted part), ``vote`` matches every query feature
+    among the map features within the radius of H's prediction, with the ratio test among
+    those local candidates (``guided_ratio``, 0.8; georeg.register.crossspectral.guided_matches).
+    """
+    mc = crossspectral.matcher_conf(conf)
+    method = str(mc.get("method", "paper"))
+    if method not in ("paper", "vote"):
+        raise ValueError(f"unknown register.matcher.method {method!r} (vote | paper)")
+    q_xy, q_desc, q_resp, q_ang, q_size = qf.xy, qf.desc, qf.response, qf.angle, qf.size
+    if mc.get("polarity") == "both" and len(qf):
+        q_xy, q_desc, q_resp = crossspectral.add_polarity(q_xy, q_desc, q_resp)
+        if q_ang is not None and q_size is not None:
+            q_ang = np.r_[q_ang, (q_ang + 180.0) % 360.0]
+            q_size = np.r_[q_size, q_size]
+    if method == "vote" and guide is not None and mdesc is not None:
+        gm = crossspectral.guided_matches(
+            q_xy, q_desc, guide[0], mxy, mdesc, guide[1], float(mc.get("guided_ratio", 0.8)), knn
+        )
+        return [(gm, 1, "guided")]
+    geom = source.geometry(ids) if method == "vote" else None
+    if method == "vote" and geom is not None and q_ang is not None and q_size is not None:
+        m_ang, m_scale = geom
+        hyps = crossspectral.rotation_hypotheses(
+            q_xy, q_desc, q_ang, q_size, mxy, m_ang, m_scale / source.gsd_m, knn, mc
+        )
+        if hyps:
+            return [(m, n, "vote") for m, n in hyps]
+        z = np.zeros(0, np.int64)
+        empty = matching.Matches(z, z, np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), len(q_desc))
+        return [(empty, 1, "vote")]
+    m = matching.ratio_matches(q_xy, q_desc, q_resp, mxy, knn, float(conf.get("ratio", 0.7)), nt)
+    return [(m, 1, "paper")]
+
+
+def footprint_diagonal_m(qf: QueryFeatures, feature_gsd: float, gsd_m: float | None) -> float:
+    """Ground diagonal of the part (largest assumed GSD when unknown)."""
+    g = float(gsd_m) if gsd_m else feature_gsd * max(qf.factors)
+    return math.hypot(qf.width, qf.height) * g
+
+
+def paper_centres(bounds: Bounds, side: float, seed: int) -> np.ndarray:
+    """Neighbourhood centres on a grid of stride side/2 over the map, in seeded random order
+    (drawn without replacement)."""
+    x0, y0, x1, y1 = bounds
+    step = side / 2.0
+    xs = np.arange(x0 + step / 2, max(x1, x0 + step / 2) + 1e-9, step)
+    ys = np.arange(y0 + step / 2, max(y1, y0 + step / 2) + 1e-9, step)
+    gx, gy = np.meshgrid(xs, ys)
+    c = np.c_[gx.ravel(), gy.ravel()]
+    rng = np.random.default_rng(seed)
+    return c[rng.permutation(len(c))]
+
+
+def index_candidates(
+    qf: QueryFeatures, source: MapSource, diag_m: float, conf: dict[str, Any]
+) -> list[tuple[Bounds, float | None]]:
+    """Candidate regions ranked by visual-word votes, each grown by the part's footprint."""
+    top = int(conf.get("top_candidates", 8))
+    rank = str(conf.get("rank", "tiles"))
+    g = diag_m
+    out: list[tuple[Bounds, float | None]] = []
+    if source.index is not None and rank == "tiles":
+        tb = np.asarray(source.index.tile_bounds, np.float64)
+        ranked = source.index.rank_tiles(qf.desc, top)
+        # tiles without a shared word (or a one-tile map, where idf = 0) follow, unranked
+        seen = {t for t, _ in ranked}
+        ok = np.isfinite(tb).all(axis=1)
+        rest = [(int(t), None) for t in np.flatnonzero(ok) if int(t) not in seen]
+        for t, s in (ranked + rest)[:top]:
+            b = tb[t]
+            out.append(((b[0] - g, b[1] - g, b[2] + g, b[3] + g), s))
+        return out
+    if source.index is not None:
+        for b, s in source.index.rank_regions(qf.desc, diag_m, diag_m / 2, top):
+            h = g / 2
+            out.append(((b[0] - h, b[1] - h, b[2] + h, b[3] + h), s))
+        return out
+    # no index (plain arrays): 1-NN votes of the query descriptors on cells of the footprint size
+    mb = source.bounds
+    d, ii = matching.knn2(dequantize(np.asarray(source.desc)))(qf.desc)
+    ok = ii[:, 0] >= 0
+    xy = np.asarray(source.xy)[ii[ok, 0]]
+    cell = diag_m
+    nx = max(1, int(math.ceil((mb[2] - mb[0]) / cell)))
+    ny = max(1, int(math.ceil((mb[3] - mb[1]) / cell)))
+    cx = np.clip(((xy[:, 0] - mb[0]) / cell).astype(int), 0, nx - 1)
+    cy = np.clip(((xy[:, 1] - mb[1]) / cell).astype(int), 0, ny - 1)
+    votes = np.bincount(cy * nx + cx, minlength=nx * ny)
+    for c in np.argsort(-votes, kind="stable")[:top]:
+        if votes[c] == 0:
+            break
+        r, k = divmod(int(c), nx)
+        x0, y0 = mb[0] + k * cell, mb[1] + r * cell
+        out.append(((x0 - g, y0 - g, x0 + cell + g, y0 + cell + g), float(votes[c])))
+    return out
+
+
+# ----------------------------------------------------------------------------- one part
+
+
+def search_part(
+    qf: QueryFeatures,
+    source: MapSource,
+    conf: dict[str, Any],
+    gsd_m: float | None,
+    seed: int,
+) -> dict[str, Any]:
+    """Search the map for one part; stop at the first accepted candidate or when the budget ends.
+
+    ``conf`` is the ``register`` config section. Returns a JSON-ready dict (see docs/ARCHITECTURE.md).
+    """
+    t0 = time.perf_counter()
+    strategy = str(conf.get("strategy", "index"))
+    diag = footprint_diagonal_m(qf, source.gsd_m, gsd_m)
+    cands: list[tuple[Bounds, float | None]]
+    t_rank = 0.0
+    if strategy == "paper":
+        pc = conf.get("paper", {})
+        side = float(pc.get("neighbourhood_factor", 2.0)) * diag
+        centres = paper_centres(source.bounds, side, seed)
+        budget = int(pc.get("max_candidates", 200))
+        centres = centres[:budget]
+        h = side / 2
+        cands = [((x - h, y - h, x + h, y + h), None) for x, y in centres]
+        max_s = float(pc.get("max_seconds", 600))
+    elif strategy == "index":
+        ic = conf.get("index", {})
+        tr = time.perf_counter()
+        cands = list(index_candidates(qf, source, diag, ic))
+        t_rank = time.perf_counter() - tr
+        max_s = float(ic.get("max_seconds", 300))
+    else:
+        raise ValueError(f"unknown search strategy {strategy!r} (index | paper)")
+    tried: list[dict[str, Any]] = []
+    best: tuple[dict[str, Any], matching.Matches, matching.HomographyFit] | None = None
+    for i, (b, score) in enumerate(cands):
+        if i > 0 and time.perf_counter() - t0 > max_s:
+            log.info("search budget of %.0f s used after %d candidates", max_s, i)
+            break
+        rec, m, fit = verify(qf, source, b, conf, gsd_m, n_candidates=len(cands), seed=seed + i)
+        rec["rank"] = i
+        rec["score"] = score
+        tried.append(rec)
+        log.info(
+            "candidate %d: %d map features, %d matches, %d inliers, log10 NFA %s -> %s",
+            i,
+            rec["map_features"],
+            rec["matches"],
+            rec["inliers"],
+            _fmt(rec.get("log10_nfa")),
+            "ACCEPT" if rec["accepted"] else rec.get("reason", ""),
+        )
+        if rec["accepted"] and m is not None and fit is not None:
+            best = (rec, m, fit)
+            break
+    out: dict[str, Any] = {
+        "strategy": strategy,
+        "rows": [qf.origin[1], qf.origin[1] + qf.height],
+        "width": qf.width,
+        "query_features": len(qf),
+        "factors": qf.factors,
+        "candidates_available": len(cands),
+        "candidates_tried": len(tried),
+        "candidates": tried,
+        "rank_s": t_rank,
+        "accepted": best is not None,
+        "homography": None,
+        "inliers": 0,
+    }
+    if best is not None:
+        rec, m, fit = best
+        inl = fit.inliers
+        out.update(
+            homography=fit.H.tolist(),  # type: ignore[union-attr]
+            inliers=fit.n_inliers,
+            matches=len(m),
+            residual_px=fit.rms_px,
+            log10_nfa=rec.get("log10_nfa"),
+            region=rec["bounds"],
+            inlier_query_xy=m.q_xy[inl].tolist(),
+            inlier_map_xy=m.m_xy[inl].tolist(),
+        )
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def _fmt(v: float | None) -> str:
+    return "n/a" if v is None else f"{v:.1f}"
+
+
+def load_source(index_path: str | Path, grid_path: str | Path | None = None) -> MapSource:
+    """The map index as a MapSource; the feature GSD falls back to the map grid's pixel size."""
+    src = MapSource.from_index(index_path)
+    if src.index.gsd_m is None and not (src.features_conf or {}).get("gsd_m") and grid_path:
+        import json
+
+        a = json.loads(Path(grid_path).read_text())["transform"][0]
+        src.gsd_m = abs(float(a))
+    return src
+
+
+def gsd_in_map_units(gsd_m: float | None, crs_wkt: str | None) -> float | None:
+    """The query's ``gsd_m`` (metres) in the map CRS's horizontal unit (feet maps: / 0.3048...).
+
+    Everything on the map side (feature GSD, keypoint xy, homography scale) is in CRS units.
+    """
+    if not gsd_m or not crs_wkt:
+        return gsd_m
+    from pyproj import CRS
+
+    crs = CRS.from_user_input(crs_wkt)
+    if crs.is_projected and crs.axis_info:
+        return float(gsd_m) / float(crs.axis_info[0].unit_conversion_factor)
+    return gsd_m
+
+
+def run_search_part(
+    band_tif: str,
+    band_json: str,
+    index_path: str,
+    grid_path: str | None,
+    part: int,
+    reg_conf: dict[str, Any],
+    seed: int,
+    out_json: str,
+) -> dict[str, Any]:
+    """Rule search_part: features of one along-track part, then the configured search."""
+    import json
+
+    from georeg.io.atomic import write_json
+    from georeg.register.band import feature_scales, read_query_band
+
+    t0 = time.perf_counter()
+    meta = json.loads(Path(band_json).read_text())
+    u8 = read_query_band(band_tif)
+    source = load_source(index_path, grid_path)
+    t_load = time.perf_counter() - t0
+    gsd = gsd_in_map_units(meta.get("gsd_m"), source.crs_wkt)
+    factors = feature_scales(gsd, source.gsd_m, reg_conf.get("unknown_gsd_factors", [1.0]))
+    rows = part_rows(u8.shape[0], int(reg_conf.get("parts", 2)), part)
+    t1 = time.perf_counter()
+    qf = query_features(u8, rows, factors, source.features_conf)
+    t_feat = time.perf_counter() - t1
+    log.info("part %d rows %s: %d query features at factors %s", part, rows, len(qf), factors)
+    res = {"part": part, **search_part(qf, source, reg_conf, gsd, seed + 1000 * part)}
+    res["timings_s"] = {"load": t_load, "features": t_feat, "search": res["seconds"]}
+    res["seconds"] = time.perf_counter() - t0
+    write_json(out_json, res)
+    return res

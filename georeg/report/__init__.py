@@ -1,0 +1,1 @@
+"""Evaluation against truth, figures and the HTML report."""
