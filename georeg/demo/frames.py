@@ -1,4 +1,4 @@
-"""Demo drone frames: perspective views of the demo city with a known pose (issue 9).
+"""Demo drone frames: perspective views of the demo city with a known pose.
 
 The city of ``generate_scene`` is rebuilt from ``scene.json`` (same seed streams, same layout,
 texture and query-epoch changes), rasterised finely (0.25-1 m) around each frame's footprint, lit

@@ -1,4 +1,4 @@
-"""Demo drone video (issue 10): a smooth flight over the demo city with a truth pose per frame.
+"""Demo drone video: a smooth flight over the demo city with a truth pose per frame.
 
 The flight is a circular arc at constant altitude (``agl_m`` above the mean ground under it),
 the camera ``off_nadir_deg`` from nadir looking ``look_deg`` from the direction of flight, with a

@@ -1,4 +1,4 @@
-"""Coarse location of a frame without GPS: the map's visual-word index, then PnP (issue 9).
+"""Coarse location of a frame without GPS: the map's visual-word index, then PnP.
 
 The frame is treated as an approximately nadir view of unknown ground sampling: its SIFT features
 (the index's own settings, rotation-invariant, so no rotation search is needed unless the map was

@@ -1,4 +1,4 @@
-"""Focal length of a frame from its EXIF tags (Pillow), for ``camera: null`` (issue 9).
+"""Focal length of a frame from its EXIF tags (Pillow), for ``camera: null``.
 
 In order: ``FocalLengthIn35mmFilm`` (fx = f35 / 36 mm x the image's long side, the 36 mm side of
 a 35 mm frame), else ``FocalLength`` (mm) x ``FocalPlaneXResolution`` (sensor pixels per

@@ -1,4 +1,4 @@
-"""Focal length estimation inside the render-match-PnP stage, for ``camera: null`` (issue 9).
+"""Focal length estimation inside the render-match-PnP stage, for ``camera: null``.
 
 The coarse step only picks the best of a few focal candidates (``focal_factors``), off by up to
 ~15 %: the PnP then absorbs the error into the camera height. Here the inlier 2-D/3-D

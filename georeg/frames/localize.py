@@ -1,4 +1,4 @@
-"""Single-frame geo-localisation (issue 9): one frame set -> poses.json, GeoJSON, KML, overlays.
+"""Single-frame geo-localisation: one frame set -> poses.json, GeoJSON, KML, overlays.
 
 Per frame: read, undistort (known ``camera``), coarse location by the map index
 (``frame_coarse``), render-match-PnP iterations against the textured map (``frame_pnp``),
@@ -15,7 +15,6 @@ determine it); principal point at the centre, no distortion, in both cases.
 from __future__ import annotations
 
 import dataclasses
-import glob
 import logging
 import time
 from pathlib import Path
@@ -45,7 +44,7 @@ from georeg.frames.render import (
     read_laz_cloud,
     render,
 )
-from georeg.io.errors import InputError
+from georeg.io.video import frame_images, read_frame
 
 log = logging.getLogger(__name__)
 
@@ -64,23 +63,6 @@ DEFAULTS: dict[str, Any] = {
     "min_inliers": 15,  # final PnP inliers to call a frame registered
     "overlay_alpha": 0.5,
 }
-
-
-def frame_images(images: Any) -> list[str]:
-    """``images``: a list of paths and/or globs, or one glob; sorted within each glob."""
-    items = [images] if isinstance(images, str) else list(images or [])
-    out: list[str] = []
-    for it in items:
-        hits = sorted(glob.glob(it)) if any(ch in it for ch in "*?[") else [it]
-        out.extend(hits)
-    return out
-
-
-def read_frame(path: str | Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise InputError(path, "cannot read the frame image", "PNG/JPEG/TIFF readable by OpenCV")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
 def camera_matrix(camera: dict | None, width: int, height: int, fx: float | None = None):

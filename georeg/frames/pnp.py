@@ -1,4 +1,4 @@
-"""2-D/3-D registration of one frame: render around the estimate, match, PnP, iterate (issue 9).
+"""2-D/3-D registration of one frame: render around the estimate, match, PnP, iterate.
 
 As in the seed paper (Bodensteiner et al., section 2 (B)): several views of the textured map are
 rendered around the current pose (a star pattern: the pose itself, and moves sideways and along

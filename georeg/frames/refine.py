@@ -1,4 +1,4 @@
-"""Intensity refinement of a frame pose: mutual information + gradient correlation (issue 9).
+"""Intensity refinement of a frame pose: mutual information + gradient correlation.
 
 As in the seed paper's intensity-based 2-D/3-D step: the pose from PnP is polished by maximising
 a similarity between the frame and the map, over the 6 pose parameters (SE(3) Lie-algebra

@@ -1,4 +1,4 @@
-"""Frames of a video file or of an ordered list of images, read lazily (issue 10).
+"""Frames of a video file or of an ordered list of images, read lazily.
 
 ``FrameSource`` yields ``(index, name, rgb)`` one frame at a time (never the whole video):
 ``index`` is the frame's position in the video / list, ``name`` is ``"<video file>#<index:06d>"``
@@ -8,6 +8,7 @@ stops after that many. Bad input is an ``InputError`` naming the file.
 
 from __future__ import annotations
 
+import glob
 import logging
 from collections.abc import Iterator
 from pathlib import Path
@@ -16,13 +17,30 @@ from typing import Any
 import cv2
 import numpy as np
 
-from georeg.frames.localize import frame_images, read_frame
 from georeg.io.errors import ConfigError, InputError
 
 log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp", ".ppm", ".pgm"}
 VIDEO_HINT = "a video OpenCV can decode (e.g. MP4 / H.264 or mp4v)"
+
+
+def frame_images(images: Any) -> list[str]:
+    """``images``: a list of paths and/or globs, or one glob; sorted within each glob."""
+    items = [images] if isinstance(images, str) else list(images or [])
+    out: list[str] = []
+    for it in items:
+        hits = sorted(glob.glob(it)) if any(ch in it for ch in "*?[") else [it]
+        out.extend(hits)
+    return out
+
+
+def read_frame(path: str | Path) -> np.ndarray:
+    """One frame image as RGB uint8; ``InputError`` naming the file when OpenCV cannot read it."""
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise InputError(path, "cannot read the frame image", "PNG/JPEG/TIFF readable by OpenCV")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
 def video_name(path: str | Path, index: int) -> str:

@@ -1,4 +1,4 @@
-"""Spectral-elevation products of a registered query (issue 6): the rule bodies.
+"""Spectral-elevation products of a registered query: the rule bodies.
 
 Two steps, so that changing the segmentation never recomputes the (heavy) geo-referenced cube:
 

@@ -1,4 +1,4 @@
-"""Cross-spectral matching front-end (issue 11): features that survive SWIR vs visible and years.
+"""Cross-spectral matching front-end: features that survive SWIR vs visible and years.
 
 Measured on the cross-date SWIR -> RGB development set (benchmarks/bench_crossspectral.py,
 docs/BENCHMARKS.md "Cross-spectral matching"). The pieces:

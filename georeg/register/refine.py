@@ -1,4 +1,4 @@
-"""Sub-pixel local refinement of a global registration (issue 12).
+"""Sub-pixel local refinement of a global registration.
 
 One homography cannot follow a pushbroom cube: attitude jitter moves every line by a fraction of a
 pixel along and across track. This module corrects it with tie points measured against the map:

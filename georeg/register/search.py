@@ -279,8 +279,8 @@ def _hypotheses(
 ) -> list[tuple[matching.Matches, int, str]]:
     """Correspondence sets to fit, each with its multiple-test count: ``register.matcher``.
 
-    ``paper``: one set, the paper's ratio test (``register.ratio``, stop at Nt). ``vote``
-    (issue 11): both contrast polarities of the query, a loose ratio, keypoint-size agreement and
+    ``paper``: one set, the paper's ratio test (``register.ratio``, stop at Nt). ``vote``:
+    both contrast polarities of the query, a loose ratio, keypoint-size agreement and
     the strongest rotation peaks (georeg.register.crossspectral.rotation_hypotheses); falls back to
     ``paper`` when the map or the query has no keypoint geometry. With ``guide`` = (H, radius)
     (the fuse stage's re-match around an accepted part), ``vote`` matches every query feature

@@ -1,6 +1,6 @@
 """The report's "frames" section: per frame set, pose errors against truth and overlay thumbnails.
 
-Reads ``results/frames/{set}/poses.json`` (issue 9; issue 10 writes the same format, one entry per
+Reads ``results/frames/{set}/poses.json`` (single frames; a video writes the same format, one entry per
 video frame, with ``frame`` and maybe ``keyframe`` / ``source``) and the set's ``overlays/*.png``.
 A set of at most ``MAX_ROWS`` entries gets one row per frame (status vs expected, PnP-only and
 refined errors from ``evaluation``, inliers, reprojection, seconds) and a mean row; a longer set
@@ -23,7 +23,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from georeg.report.html import _cell, _table
+from georeg.report.html_parts import cell, table
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +103,7 @@ def _status_cell(p: Mapping[str, Any]) -> str:
 
 def _err_cells(prefix: str, e: Mapping[str, Any] | None) -> list[str]:
     e = e or {}
-    return [_cell(f"{prefix}_{k}", e.get(k)) for k in ERR_KEYS]
+    return [cell(f"{prefix}_{k}", e.get(k)) for k in ERR_KEYS]
 
 
 def frame_table(poses: list[dict[str, Any]], set_name: str) -> str:
@@ -114,9 +114,9 @@ def frame_table(poses: list[dict[str, Any]], set_name: str) -> str:
         rows.append(
             [f'<td data-key="frame" data-value="{html.escape(name)}">{html.escape(name)}</td>',
              _status_cell(p), *_err_cells("pnp", _err(p, "pnp")),
-             *_err_cells("final", _err(p, "final")), _cell("inliers", p.get("inliers")),
-             _cell("reprojection_px", p.get("reprojection_px")),
-             _cell("seconds", (p.get("timings_s") or {}).get("total_s"), 1)]
+             *_err_cells("final", _err(p, "final")), cell("inliers", p.get("inliers")),
+             cell("reprojection_px", p.get("reprojection_px")),
+             cell("seconds", (p.get("timings_s") or {}).get("total_s"), 1)]
         )  # fmt: skip
     mp, mf = mean_errors(poses, "pnp"), mean_errors(poses, "final")
     n = (mf or mp or {}).get("n", 0)
@@ -148,20 +148,20 @@ def video_summary(poses: list[dict[str, Any]], set_name: str) -> str:
         counts.append(("keyframes", "keyframes", sum(bool(p.get("keyframe")) for p in poses), 0))
     counts.append(("s per entry, mean", "seconds_mean", float(np.mean(secs)) if secs else None, 2))
     sid = html.escape(set_name)
-    out = _table([c[0] for c in counts], [[_cell(k, v, d) for _, k, v, d in counts]],
+    out = table([c[0] for c in counts], [[cell(k, v, d) for _, k, v, d in counts]],
                  f'class="frames-summary" data-set="{sid}"')  # fmt: skip
     rows = []
     for key, label in (("pnp", "PnP only"), ("final", "final")):
         st = error_stats(poses, key)
         if st["n"]:
-            rows.append([f"<th>{label}</th>", _cell(f"{key}_n", st["n"], 0)]
-                        + [_cell(f"{key}_{k}", st[k]) for k in STAT_KEYS])  # fmt: skip
+            rows.append([f"<th>{label}</th>", cell(f"{key}_n", st["n"], 0)]
+                        + [cell(f"{key}_{k}", st[k]) for k in STAT_KEYS])  # fmt: skip
     if rows:
         heads = ["", "evaluated"] + [
             f"{q} {s}" for q in ("position 3-D (m)", "horizontal (m)", "rotation (deg)")
             for s in ("mean", "p90")
         ]  # fmt: skip
-        out += _table(heads, rows, f'class="frames-summary" data-set="{sid}"')
+        out += table(heads, rows, f'class="frames-summary" data-set="{sid}"')
     return out
 
 
@@ -271,7 +271,7 @@ def set_section(name: str, poses_json: str | Path, truth_json: str | Path | None
 
 
 FRAMES_NOTE = (
-    '<p class="note">Single-frame geo-localisation (issue 9): status against the expected one '
+    '<p class="note">Single-frame geo-localisation: status against the expected one '
     '(<span class="ok">green</span> = as expected, <span class="bad">red</span> = not), errors of '
     "the camera centre (horizontal h, vertical v) and of the rotation against the truth pose, "
     "after render-match-PnP only and after the intensity refinement (final pose); inliers = "

@@ -14,7 +14,6 @@ holding the exact JSON value, so tests (and scripts) can check the page against 
 
 from __future__ import annotations
 
-import base64
 import csv
 import datetime as _dt
 import html
@@ -27,6 +26,8 @@ from pathlib import Path
 from typing import Any
 
 from georeg.io.atomic import write_text
+from georeg.report.frames_html import frames_section
+from georeg.report.html_parts import cell, fmt, png_data_uri, table, td
 
 log = logging.getLogger(__name__)
 
@@ -201,42 +202,6 @@ def read_benchmark(path: str | Path | None) -> list[dict[str, str]]:
 # ----------------------------------------------------------------------------- HTML pieces
 
 
-def _fmt(v: Any, digits: int = 2) -> str:
-    if v is None:
-        return "&ndash;"
-    if isinstance(v, bool):
-        return "yes" if v else "no"
-    if isinstance(v, float):
-        return f"{v:.{digits}f}"
-    return html.escape(str(v))
-
-
-def _cell(key: str, v: Any, digits: int = 2, cls: str = "num") -> str:
-    raw = "" if v is None else json.dumps(v)
-    return (
-        f'<td class="{cls}" data-key="{key}" data-value="{html.escape(raw, quote=True)}">'
-        f"{_fmt(v, digits)}</td>"
-    )
-
-
-def _table(headers: list[str] | None, rows: list[list[str]], attrs: str = "") -> str:
-    head = ""
-    if headers:
-        th = "".join(f"<th>{html.escape(h)}</th>" for h in headers)
-        head = f"<thead><tr>{th}</tr></thead>"
-    body = "".join("<tr>" + "".join(r) + "</tr>" for r in rows)
-    return f"<table {attrs}>{head}<tbody>{body}</tbody></table>"
-
-
-def _td(v: Any, digits: int = 2, num: bool = False) -> str:
-    return f'<td class="{"num" if num else ""}">{_fmt(v, digits)}</td>'
-
-
-def png_data_uri(path: Path) -> str:
-    """A PNG file as a data URI (the page then needs no other file)."""
-    return "data:image/png;base64," + base64.b64encode(path.read_bytes()).decode("ascii")
-
-
 def summary_table(rows: list[dict[str, Any]]) -> str:
     """The summary table of all queries."""
     out = []
@@ -251,16 +216,16 @@ def summary_table(rows: list[dict[str, Any]]) -> str:
                 f"{html.escape(str(r['status']))}</td>",
                 f'<td class="{OUTCOME_CLASS.get(oc, "na")}" data-key="outcome" '
                 f'data-value="{html.escape(oc)}">{OUTCOME_TEXT.get(oc, oc)}</td>',
-                _cell("inliers", r["inliers"]),
-                _cell("candidates_tried", r["candidates_tried"]),
-                _cell("error_median_px", r["error_median_px"]),
-                _cell("error_p90_px", r["error_p90_px"]),
-                _cell("error_median_m", r["error_median_m"]),
-                _cell("error_p90_m", r["error_p90_m"]),
-                _cell("time_s", r["time_s"], 1),
+                cell("inliers", r["inliers"]),
+                cell("candidates_tried", r["candidates_tried"]),
+                cell("error_median_px", r["error_median_px"]),
+                cell("error_p90_px", r["error_p90_px"]),
+                cell("error_median_m", r["error_median_m"]),
+                cell("error_p90_m", r["error_p90_m"]),
+                cell("time_s", r["time_s"], 1),
             ]
         )
-    return _table(
+    return table(
         [
             "query",
             "status",
@@ -291,22 +256,22 @@ def parts_table(reg: Mapping[str, Any], ev: Mapping[str, Any]) -> str:
 
         rows.append(
             [
-                _td(p.get("part")),
-                _td(f"{p['rows'][0]}-{p['rows'][1]}" if p.get("rows") else None),
-                _td(bool(p.get("accepted"))),
-                _td(p.get("candidates_tried"), num=True),
-                _td(p.get("inliers"), num=True),
-                _td(p.get("log10_nfa"), 1, num=True),
-                _td(p.get("seconds"), 1, num=True),
-                _td(med(e.get("error_own_rows")), num=True),
-                _td(med(e.get("error_whole")), num=True),
-                _td(med(e.get("fused_error_own_rows")), num=True),
-                _td((after.get(str(p.get("part"))) or {}).get("inliers"), num=True),
+                td(p.get("part")),
+                td(f"{p['rows'][0]}-{p['rows'][1]}" if p.get("rows") else None),
+                td(bool(p.get("accepted"))),
+                td(p.get("candidates_tried"), num=True),
+                td(p.get("inliers"), num=True),
+                td(p.get("log10_nfa"), 1, num=True),
+                td(p.get("seconds"), 1, num=True),
+                td(med(e.get("error_own_rows")), num=True),
+                td(med(e.get("error_whole")), num=True),
+                td(med(e.get("fused_error_own_rows")), num=True),
+                td((after.get(str(p.get("part"))) or {}).get("inliers"), num=True),
             ]
         )
     if not rows:
         return ""
-    return _table(
+    return table(
         [
             "part",
             "rows",
@@ -351,7 +316,7 @@ def query_section(q: QueryInputs, reg: Mapping[str, Any], ev: Mapping[str, Any])
     if err.get("px"):
         px, m = err["px"], err.get("m") or {}
         for k in ("median", "p90", "max", "rmse"):
-            kv.append((f"error {k}", f"{_fmt(px.get(k))} px = {_fmt(m.get(k))} m"))
+            kv.append((f"error {k}", f"{fmt(px.get(k))} px = {fmt(m.get(k))} m"))
         kv.append(("pixels with truth", err.get("pixels")))
     if ev and ev.get("inside_fraction") is not None:
         kv.append(("share of the query inside the map (truth)", f"{ev['inside_fraction']:.0%}"))
@@ -360,7 +325,7 @@ def query_section(q: QueryInputs, reg: Mapping[str, Any], ev: Mapping[str, Any])
         kv.append(
             (
                 "fusion gain (best part's H vs fused, median px over the whole query)",
-                f"{_fmt(gain.get('best_part_median_px'))} -> {_fmt(gain.get('fused_median_px'))}",
+                f"{fmt(gain.get('best_part_median_px'))} -> {fmt(gain.get('fused_median_px'))}",
             )
         )
     seg = (ev or {}).get("segmentation") or {}
@@ -368,7 +333,7 @@ def query_section(q: QueryInputs, reg: Mapping[str, Any], ev: Mapping[str, Any])
         kv.append(("segmentation overall accuracy", f"{seg['overall_accuracy']:.1%}"))
         kv.append(("segmentation mean IoU", seg.get("mean_iou")))
     t = reg.get("timings_s") or {}
-    kv.append(("time (s): band + parts + fuse", _fmt(query_seconds(reg), 1)))
+    kv.append(("time (s): band + parts + fuse", fmt(query_seconds(reg), 1)))
     if t:
         kv.append(
             (
@@ -380,8 +345,8 @@ def query_section(q: QueryInputs, reg: Mapping[str, Any], ev: Mapping[str, Any])
                 ),
             )
         )
-    rows = [[f"<th>{html.escape(k)}</th>", _td(v, 3)] for k, v in kv if v is not None]
-    parts = [f'<section id="q-{name}"><h2>query {name}</h2>', _table(None, rows)]
+    rows = [[f"<th>{html.escape(k)}</th>", td(v, 3)] for k, v in kv if v is not None]
+    parts = [f'<section id="q-{name}"><h2>query {name}</h2>', table(None, rows)]
     pt = parts_table(reg, ev)
     if pt:
         parts.append("<h3>parts, before and after fusing</h3>" + pt)
@@ -418,17 +383,17 @@ def timings_table(rows: list[dict[str, Any]]) -> str:
         stages[r["stage"]] = stages.get(r["stage"], 0.0) + r["total_s"]
     body = [
         [
-            _td(r["stage"]),
-            _td(r["rule"]),
-            _td(r["jobs"], num=True),
-            _td(r["total_s"], 1, num=True),
-            _td(r["max_s"], 1, num=True),
-            _td(r["source"]),
+            td(r["stage"]),
+            td(r["rule"]),
+            td(r["jobs"], num=True),
+            td(r["total_s"], 1, num=True),
+            td(r["max_s"], 1, num=True),
+            td(r["source"]),
         ]
         for r in rows
     ]
-    st = [[_td(k), _td(v, 1, num=True)] for k, v in stages.items()]
-    return _table(["stage", "total (s, summed over jobs)"], st, 'id="stage-timings"') + _table(
+    st = [[td(k), td(v, 1, num=True)] for k, v in stages.items()]
+    return table(["stage", "total (s, summed over jobs)"], st, 'id="stage-timings"') + table(
         ["stage", "rule", "jobs", "total (s)", "max (s)", "from"], body, 'id="rule-timings"'
     )
 
@@ -482,7 +447,7 @@ def benchmark_table(rows: list[dict[str, str]]) -> str:
     )
 
 
-#: packages whose versions can change a result (issue 13: the report states them)
+#: packages whose versions can change a result (the report states them)
 VERSIONED = (
     "python", "georeg", "numpy", "scipy", "opencv-python-headless", "faiss-cpu", "rasterio",
     "GDAL", "pyproj", "PROJ", "laspy", "lazrs", "open3d", "scikit-learn", "snakemake",
@@ -534,7 +499,6 @@ def build_report(
 
     ``frame_sets``: ``{set: {"poses": poses.json, "truth": truth.json or None}}`` adds the frames
     section (``georeg.report.frames_html``); none: no section."""
-    from georeg.report.frames_html import frames_section
 
     regs = {q.name: _read_json(q.registration) for q in queries}
     evs = {q.name: _read_json(q.evaluation) for q in queries}
@@ -595,7 +559,7 @@ def build_report(
         f"<details open><summary>config (YAML, defaults filled in)</summary>"
         f"<pre>{html.escape(config_yaml(config))}</pre></details>",
         '<h2 id="versions">software versions</h2>',
-        _table(["package", "version"], [[_td(k), _td(v)] for k, v in library_versions().items()]),
+        table(["package", "version"], [[td(k), td(v)] for k, v in library_versions().items()]),
         "</main>",
     ]
     page = (

@@ -1,4 +1,4 @@
-"""Keyframes of a video by visual overlap and baseline (issue 10), streaming.
+"""Keyframes of a video by visual overlap and baseline, streaming.
 
 Good features (Shi-Tomasi) of the last keyframe are tracked frame to frame (pyramidal Lucas-Kanade,
 kept only if tracking back lands within ``fb_max_px``). A frame becomes the next keyframe when

@@ -1,4 +1,4 @@
-"""Outputs of video trajectory geo-referencing (issue 10).
+"""Outputs of video trajectory geo-referencing.
 
 * ``trajectory.csv``: one row per frame (frame, time, status, source, x y z, heading / pitch /
   roll of the optical axis, lon / lat).

@@ -1,4 +1,4 @@
-"""Video trajectory geo-referencing (issue 10): one registered keyframe geo-references a video.
+"""Video trajectory geo-referencing: one registered keyframe geo-references a video.
 
 As in the seed paper (Bodensteiner et al., section 3), for one frame set with a ``video`` (or an
 ordered ``images`` list):

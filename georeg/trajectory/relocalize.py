@@ -1,4 +1,4 @@
-"""Every video frame located against the geo-registered 3-D feature map (issue 10).
+"""Every video frame located against the geo-registered 3-D feature map.
 
 Two ways, as in the seed paper (Bodensteiner et al., section 3):
 
