@@ -229,11 +229,23 @@ def test_constant_query_is_not_found_with_reason(runs):
 # ---------------------------------------------------------------- bad inputs, one line each
 
 
-def _expect_failure(proc, path: str, problem: str, missing: list[Path]) -> None:
+def _expect_failure(
+    proc, path: str, problem: str, missing: list[Path], before_run: bool = False
+) -> None:
+    """One line naming the file and the problem, no traceback, none of ``missing`` written.
+
+    ``before_run``: the input check of the config (headers only) finds it, so the run stops in a
+    list of problems before any job starts; otherwise the rule that reads the pixels reports it.
+    """
     err = proc.stderr
     assert proc.returncode != 0
     line = f"{path}: {problem}"
-    hits = [ln for ln in err.splitlines() if ln.startswith("georeg error in rule") and line in ln]
+    if before_run:
+        assert "problem(s) with the inputs, nothing was started" in err, err[-3000:]
+        hits = [ln for ln in err.splitlines() if ln.startswith("  - ") and line in ln]
+        assert "Select jobs to execute" not in err, err[-3000:]
+    else:
+        hits = [ln for ln in err.splitlines() if ln.startswith("georeg error in rule") and line in ln]
     assert hits, err[-3000:]
     assert "Traceback" not in err, err[-3000:]
     for m in missing:
@@ -272,7 +284,9 @@ def test_workflow_truncated_orthophoto(tmp_path):
 def test_workflow_orthophoto_without_crs(tmp_path):
     o = make_ortho(tmp_path / "ortho.tif", crs=None)
     r = _map_case(tmp_path, o, [], "results/map/grid.json")
-    _expect_failure(r, "ortho.tif", "raster has no CRS", [tmp_path / "results/map/grid.json"])
+    _expect_failure(
+        r, "ortho.tif", "raster has no CRS", [tmp_path / "results/map/grid.json"], before_run=True
+    )
 
 
 def test_workflow_laz_with_zero_points(tmp_path):
@@ -283,11 +297,12 @@ def test_workflow_laz_with_zero_points(tmp_path):
     _expect_failure(
         r, "empty.laz", "point cloud is empty (0 points)",
         [tile / f"{n}.tif" for n in ("dsm", "dtm", "ndsm", "density")] + [tile / "points.laz"],
+        before_run=True,
     )  # fmt: skip
 
 
 def test_workflow_bad_query_cubes(tmp_path):
-    """Four bad cubes in one `snakemake -k` run: each job fails alone with its own line."""
+    """Six bad cubes and a missing orthophoto: all listed in one message before any job starts."""
     rng = np.random.default_rng(0)
     cube = rng.integers(1, 1000, (5, 40, 30)).astype(np.uint16)
     wl = "wavelength units = nm\nwavelength = {900, 1100, 1200, 1500, 1700}\n"
@@ -320,4 +335,6 @@ def test_workflow_bad_query_cubes(tmp_path):
         _expect_failure(
             r, path, problem,
             [tmp_path / f"results/queries/{k}/band.tif", tmp_path / f"results/queries/{k}/band.json"],
+            before_run=True,
         )  # fmt: skip
+    assert "map.orthophoto: none.tif: file not found" in r.stderr  # every problem in one list

@@ -31,7 +31,6 @@ from rasterio.transform import Affine, array_bounds
 from scipy import ndimage
 from scipy.interpolate import griddata
 
-from georeg.io.errors import InputError
 from georeg.io.raster import ELEV_NODATA, on_grid, open_raster, read, read_masks, write_cog
 from georeg.map import lidar
 
@@ -426,8 +425,11 @@ def make_elevation_tile(
     elif dem:
         surf = dem_tile(grid, dem, s.get("dem_resampling", "bilinear"))
         pts = dem_points(grid, surf)
-    else:
-        raise InputError(None, "map has neither lidar nor dem", "set map.lidar or map.dem")
+    else:  # orthophoto-only map: registration needs no heights; the height layers are nodata
+        log.info("tile %s: map without elevation (no map.lidar, no map.dem): heights nodata", ortho_tile)
+        nan = np.full((grid.height, grid.width), np.nan, np.float32)
+        surf = {"dsm": nan, "dtm": nan.copy(), "ndsm": nan.copy(), "density": np.zeros_like(nan)}
+        pts = dem_points(grid, surf)
     rgb = sample_rgb(ortho_tile, pts)
     ok = np.isfinite(surf["dsm"])
     log.info(

@@ -36,6 +36,7 @@ from georeg.io.raster import (
     write_cog,
     write_vrt,
 )
+from georeg.map.visible import map_stretch, to_rgb8, visible_bands
 
 log = logging.getLogger(__name__)
 
@@ -170,6 +171,15 @@ def build_grid(
                 f"has {inf['count']} bands but {infos[0]['path']} has {infos[0]['count']}",
                 "all orthophotos must have the same bands",
             )
+    with open_raster(orthophotos[0]) as ds0:
+        bands, how = visible_bands(ds0)
+    stretch = map_stretch(orthophotos, bands)
+    log.info(
+        "orthophoto bands %s (%s), %s",
+        bands,
+        how,
+        f"stretched {stretch[0]:.4g}..{stretch[1]:.4g} -> 1..255" if stretch else "8-bit as is",
+    )
     xres = min(i["res_map"][0] for i in infos)
     yres = min(i["res_map"][1] for i in infos)
     left = min(i["bounds_map"][0] for i in infos)
@@ -212,9 +222,10 @@ def build_grid(
         "res": [xres, yres],
         "tile_size_px": tile_size_px,
         "tile_overlap_px": tile_overlap_px,
-        "count": infos[0]["count"],
-        "dtype": infos[0]["dtype"],
-        "nodata": infos[0]["nodata"],
+        "count": 3,
+        "dtype": "uint8",
+        "nodata": infos[0]["nodata"] if stretch is None else None,
+        "visible": {"bands": bands, "how": how, "stretch": stretch},
         "orthophotos": infos,
         "tiles": {
             t.id: {
@@ -324,8 +335,10 @@ def make_ortho_tile(
     t = grid.tiles[tile]
     tw, th = int(t.window.width), int(t.window.height)
     tr = grid.tile_transform(t)
-    count, dtype, nodata = grid.data["count"], grid.data["dtype"], grid.data["nodata"]
-    data = np.zeros((count, th, tw), dtype=dtype)
+    vis = grid.data.get("visible") or {"bands": [1, 2, 3], "stretch": None}
+    bands, stretch, nodata = vis["bands"], vis["stretch"], grid.data["nodata"]
+    src_nodata = grid.data["orthophotos"][0]["nodata"]
+    data = np.zeros((3, th, tw), dtype=np.uint8)
     if nodata is not None:
         data[:] = nodata
     valid = np.zeros((th, tw), dtype=bool)
@@ -336,14 +349,18 @@ def make_ortho_tile(
                 continue
             with on_grid(ds, grid.crs, tr, tw, th, Resampling[resampling]) as (src, win):
                 boundless = src is ds
-                arr = read(src, window=win, boundless=boundless, fill_value=nodata or 0, path=path)
+                arr = read(
+                    src, window=win, boundless=boundless, fill_value=src_nodata or 0, path=path
+                )[[b - 1 for b in bands]]
                 m = (
                     read_masks(src, window=win, path=path)
                     if not boundless
                     else _boundless_mask(ds, win, path)
                 )
             take = (m > 0) & ~valid
-            data[:, take] = arr[:, take]
+            if stretch is not None:
+                take &= np.isfinite(arr).all(0)
+            data[:, take] = to_rgb8(arr, stretch)[:, take]
             valid |= take
     if not valid.any():
         log.warning("tile %s: no valid orthophoto pixel", tile)

@@ -219,6 +219,67 @@ def write_fused(
                 )
 
 
+SEGMENTATION_FILES = ("segmentation", "segmentation_geo", "segmentation_legend", "class_areas")
+
+
+def _segmentation(
+    cube: Cube,
+    c: dict[str, Any],
+    x: np.ndarray,
+    y: np.ndarray,
+    f: dict[str, Path],
+    gcps: list,
+    crs: str,
+    cube_m: dict[str, Any],
+    inv: InverseGeolocation,
+    labels: str | os.PathLike | None,
+) -> dict[str, Any]:
+    """SWIR indices + nDSM classes in query geometry and on the product grid; legend and areas."""
+    sc = c["segmentation"]
+    ind = seg.spectral_indices(cube, c["reflectance_scale"], int(sc.get("smooth_px", 1)))
+    ndsm = read_elevation_band(f["elevation"], "ndsm")
+    ind["valid"] &= np.isfinite(x) & np.isfinite(y)
+    classes = seg.classify(ind, ndsm, sc)
+    del ind
+    seg.write_classes_query(f["segmentation"], classes, gcps, crs)
+    grid = ProductGrid(
+        rasterio.Affine(*cube_m["grid"]["transform"]),
+        int(cube_m["grid"]["width"]),
+        int(cube_m["grid"]["height"]),
+        crs,
+    )
+    col, row = inverse_maps(inv, grid)
+    idx = nearest_index(col, row, cube.width)
+    del col, row
+    geo = np.zeros((grid.height, grid.width), np.uint8)
+    geo[idx >= 0] = classes.ravel()[idx[idx >= 0]]
+    del idx
+    seg.write_classes_geo(f["segmentation_geo"], geo, crs, grid.transform)
+    del geo
+    import pyproj
+
+    unit = pyproj.CRS.from_wkt(crs).axis_info[0].unit_conversion_factor
+    rows = seg.class_areas(classes, seg.pixel_areas(x, y, unit))
+    seg.write_class_areas(f["class_areas"], rows)
+    seg.write_legend(f["segmentation_legend"], rows)
+    out = {
+        "thresholds": sc,
+        "windows_nm": seg.WINDOWS_NM,
+        "classes": {k: v["label"] for k, v in seg.CLASSES.items()},
+        "class_areas": rows,
+    }
+    if labels and Path(labels).exists():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            with rasterio.open(labels) as ds:
+                lab = ds.read(1)
+        lut = np.zeros(256, np.uint8)
+        for k, v in seg.DEMO_TO_SEG.items():
+            lut[k] = v
+        out["accuracy"] = seg.accuracy(classes, lut[lab])
+    return out
+
+
 @_in_gdal_env
 def make_products(
     registration: str | os.PathLike,
@@ -232,11 +293,16 @@ def make_products(
     grid_json: str | os.PathLike | None = None,
     name: str = "query",
     labels: str | os.PathLike | None = None,
+    map_heights: bool = True,
 ) -> dict[str, Any]:
     """Elevation, fused product, segmentation, footprint and point cloud; manifest products.json.
 
     ``labels``: optional truth class raster in query geometry (demo class codes, see
     ``segmentation.DEMO_TO_SEG``) to score the segmentation; the scores go into the manifest.
+    ``map_heights``: False for an orthophoto-only map. Without heights under the footprint the
+    height bands of ``elevation.tif`` and ``fused.tif`` are nodata, ``points_spectra.laz`` and the
+    segmentation are skipped; a product the cube cannot make (e.g. no band near a segmentation
+    window) is skipped too. ``skipped`` in the manifest says which and why.
     """
     c = merged_conf(conf)
     reg = read_registration(registration)
@@ -275,9 +341,21 @@ def make_products(
     if not c["points"]["enabled"]:
         f.pop("points_spectra")
     m: dict[str, Any] = {"query": name, "status": "registered", "crs": crs}
+    skipped: dict[str, str] = {}
 
     elev = sample_elevation(geolocation, mosaics, crs, f["elevation"])
     m["elevation"] = elev
+    no_heights = None
+    if not map_heights:
+        no_heights = "the map has no elevation (neither map.lidar nor map.dem)"
+    elif not elev["dsm"]["valid_fraction"]:
+        no_heights = "the map has no elevation under the query's footprint"
+    m["heights"] = {"available": no_heights is None, "reason": no_heights}
+    if no_heights:
+        log.warning("%s: %s: height bands are nodata", name, no_heights)
+        skipped["elevation heights"] = f"dsm/dtm/ndsm bands nodata (lon/lat kept): {no_heights}"
+        if c["fused"]:
+            skipped["fused heights"] = f"the 3 height bands are nodata: {no_heights}"
     timings["elevation"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -286,50 +364,20 @@ def make_products(
     timings["fused"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    sc = c["segmentation"]
-    ind = seg.spectral_indices(cube, c["reflectance_scale"], int(sc.get("smooth_px", 1)))
-    ndsm = read_elevation_band(f["elevation"], "ndsm")
-    ok_geo = np.isfinite(x) & np.isfinite(y)
-    ind["valid"] &= ok_geo
-    classes = seg.classify(ind, ndsm, sc)
-    del ind
-    seg.write_classes_query(f["segmentation"], classes, gcps, crs)
-    grid = ProductGrid(
-        rasterio.Affine(*cube_m["grid"]["transform"]),
-        int(cube_m["grid"]["width"]),
-        int(cube_m["grid"]["height"]),
-        crs,
-    )
     inv = _inverse(x, y, c)
-    col, row = inverse_maps(inv, grid)
-    idx = nearest_index(col, row, cube.width)
-    del col, row
-    geo = np.zeros((grid.height, grid.width), np.uint8)
-    geo[idx >= 0] = classes.ravel()[idx[idx >= 0]]
-    del idx
-    seg.write_classes_geo(f["segmentation_geo"], geo, crs, grid.transform)
-    del geo
-    import pyproj
-
-    unit = pyproj.CRS.from_wkt(crs).axis_info[0].unit_conversion_factor
-    rows = seg.class_areas(classes, seg.pixel_areas(x, y, unit))
-    seg.write_class_areas(f["class_areas"], rows)
-    seg.write_legend(f["segmentation_legend"], rows)
-    m["segmentation"] = {
-        "thresholds": sc,
-        "windows_nm": seg.WINDOWS_NM,
-        "classes": {k: v["label"] for k, v in seg.CLASSES.items()},
-        "class_areas": rows,
-    }
-    if labels and Path(labels).exists():
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
-            with rasterio.open(labels) as ds:
-                lab = ds.read(1)
-        lut = np.zeros(256, np.uint8)
-        for k, v in seg.DEMO_TO_SEG.items():
-            lut[k] = v
-        m["segmentation"]["accuracy"] = seg.accuracy(classes, lut[lab])
+    if no_heights:
+        skipped["segmentation"] = f"its height classes need the nDSM: {no_heights}"
+    else:
+        try:  # the cube must have a band in every spectral window of the indices
+            seg.window_bands(cube.wavelengths_nm)
+        except InputError as exc:
+            skipped["segmentation"] = str(exc)
+    if "segmentation" not in skipped:
+        m["segmentation"] = _segmentation(cube, c, x, y, f, gcps, crs, cube_m, inv, labels)
+    if "segmentation" in skipped:
+        for k in SEGMENTATION_FILES:
+            f.pop(k)
+        log.warning("%s: segmentation skipped: %s", name, skipped["segmentation"])
     timings["segmentation"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -338,7 +386,10 @@ def make_products(
     )
     timings["footprint"] = time.perf_counter() - t
 
-    if c["points"]["enabled"]:
+    if c["points"]["enabled"] and not map_heights:
+        skipped["points_spectra"] = "the map has no point cloud (neither map.lidar nor map.dem)"
+        f.pop("points_spectra")
+    elif c["points"]["enabled"]:
         t = time.perf_counter()
         m["points"] = fuse_points(
             list(point_tiles),
@@ -350,6 +401,7 @@ def make_products(
             int(c["points"]["chunk_points"]),
         )
         timings["points"] = time.perf_counter() - t
+    m["skipped"] = skipped
     m["files"] = {k: _rel(v, out_dir) for k, v in f.items()}
     m["files"].update({k: v for k, v in cube_m.get("files", {}).items()})
     m["timings_s"] = {k: round(v, 2) for k, v in timings.items()}

@@ -15,6 +15,8 @@ from georeg.io.query import _UNIT_TO_NM, Cube
 
 log = logging.getLogger(__name__)
 
+#: the paper's band (near 1.2 um), what `band: auto` looks for first
+AUTO_NM = 1200.0
 _SPEC_RE = re.compile(r"^\s*([0-9]+(?:\.[0-9]+)?)\s*(nm|um|µm)\s*$", re.I)
 
 
@@ -22,7 +24,7 @@ _SPEC_RE = re.compile(r"^\s*([0-9]+(?:\.[0-9]+)?)\s*(nm|um|µm)\s*$", re.I)
 class BandSpec:
     """What the user asked for: a wavelength (nm), a 0-based index, or the mean of all bands."""
 
-    kind: str  # "wavelength" | "index" | "mean"
+    kind: str  # "wavelength" | "index" | "mean" | "auto"
     value: float | int | None = None
 
 
@@ -33,8 +35,8 @@ def parse_band_spec(spec: Any) -> BandSpec:
     if isinstance(spec, (int, np.integer)):
         return BandSpec("index", int(spec))
     s = str(spec).strip()
-    if s.lower() == "mean":
-        return BandSpec("mean")
+    if s.lower() in ("mean", "auto"):
+        return BandSpec(s.lower())
     if s.isdigit():
         return BandSpec("index", int(s))
     m = _SPEC_RE.match(s)
@@ -74,6 +76,35 @@ def nearest_band(cube: Cube, wavelength_nm: float, tolerance_nm: float | None = 
     return i
 
 
+def resolve_band(cube: Cube, bs: BandSpec) -> int | None:
+    """0-based band index for a spec (None for ``mean``), from the cube's metadata only.
+
+    ``auto``: the paper's band, nearest 1200 nm, when the cube covers it; else the band nearest
+    1200 nm that the cube has (e.g. 1610 nm of a two-band SWIR image); band 0 when the cube has
+    no wavelengths. The choice is logged and recorded in the band info.
+    """
+    if bs.kind == "mean":
+        return None
+    if bs.kind == "index":
+        return cube.check_index(int(bs.value))  # type: ignore[arg-type]
+    if bs.kind == "wavelength":
+        return nearest_band(cube, float(bs.value))  # type: ignore[arg-type]
+    wl = cube.wavelengths_nm
+    if wl is None:
+        if cube.count > 1:
+            log.warning("%s has no wavelengths: band auto -> band index 0", cube.path)
+        return 0
+    try:
+        return nearest_band(cube, AUTO_NM)
+    except InputError:
+        i = int(np.argmin(np.abs(wl - AUTO_NM)))
+        log.warning(
+            "%s covers %.0f-%.0f nm, not %.0f nm: band auto -> index %d (%.1f nm)",
+            cube.path, wl.min(), wl.max(), AUTO_NM, i, wl[i],
+        )  # fmt: skip
+        return i
+
+
 def valid_mask(band: np.ndarray, nodata: float | None) -> np.ndarray:
     """True where the pixel is finite and not the nodata value."""
     m = np.isfinite(band)
@@ -98,15 +129,13 @@ def select_band(cube: Cube, spec: Any) -> tuple[np.ndarray, np.ndarray, dict[str
         mask = cnt > 0
         info.update(index=None, wavelength_nm=None, bands_used=cube.count)
         return band, mask, info
-    if bs.kind == "index":
-        idx = cube.check_index(int(bs.value))  # type: ignore[arg-type]
-    else:
-        idx = nearest_band(cube, float(bs.value))  # type: ignore[arg-type]
+    idx = resolve_band(cube, bs)
+    assert idx is not None
     band = cube.read_band(idx)
     mask = valid_mask(band, cube.nodata)
     wl = None if cube.wavelengths_nm is None else float(cube.wavelengths_nm[idx])
     info.update(index=idx, wavelength_nm=wl)
-    if bs.kind == "wavelength" and wl is not None:
+    if bs.kind in ("wavelength", "auto") and wl is not None:
         log.info("band %s -> index %d at %.1f nm", spec, idx, wl)
     return band, mask, info
 

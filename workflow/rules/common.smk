@@ -3,10 +3,12 @@ and every stage's input functions (kept here so that the stage files hold only r
 """
 
 import copy
+import sys
 import json
 import re
 from pathlib import Path
 
+from snakemake.logging import logger
 from snakemake.utils import validate
 
 
@@ -28,6 +30,28 @@ def _replace_user_sections(config):
 
 _replace_user_sections(config)
 validate(config, schema="../schemas/config.schema.yaml")
+
+
+def _check_inputs(config):
+    """Every input file opened (headers only) before any rule runs; all problems in one message.
+    Paths under results/ are made by the workflow (the demo) and checked by their rules."""
+    from georeg.register.inputs import check_inputs
+
+    problems = check_inputs(config, generated="results")
+    if problems:
+        lines = "\n".join(f"  - {p}" for p in problems)
+        logger.error(f"{len(problems)} problem(s) with the inputs, nothing was started:\n{lines}")
+        sys.exit(1)
+    m = config["map"]
+    if not (m.get("lidar") or m.get("dem")):
+        logger.warning(
+            "map without elevation (neither map.lidar nor map.dem): registration, cube and "
+            "footprint run as usual; heights are nodata and the products that need them "
+            "(points_spectra.laz, the segmentation) are skipped (products.json says which)"
+        )
+
+
+_check_inputs(config)
 
 QUERIES = sorted(config["queries"])
 FRAME_SETS = sorted(config.get("frames") or {})  # frame geo-localisation sets (frames, report)
@@ -90,7 +114,9 @@ def map_elevation_params():
         out = {k: mp[k] for k in keys}
         out["lidar_crs"] = config["map"].get("lidar_crs")
         return out
-    return {"dem_resampling": mp["dem_resampling"]}
+    if map_elevation_source() == "dem":
+        return {"dem_resampling": mp["dem_resampling"]}
+    return {}
 
 
 
@@ -194,7 +220,7 @@ def prod_image_files(wildcards):
 
 def prod_point_tiles(wildcards):
     """Filtered map points of every tile (known after the map_grid checkpoint)."""
-    if not config["products"]["points"]["enabled"]:
+    if not config["products"]["points"]["enabled"] or map_elevation_source() == "none":
         return []
     return expand("results/map/tiles/{tile}/points.laz", tile=map_tile_ids())
 
@@ -255,7 +281,7 @@ def rep_benchmark(wildcards):
 
 def frame_set_media(fset):
     """The set's video file, or its ordered image list (paths and globs expanded)."""
-    from georeg.frames.localize import frame_images
+    from georeg.io.video import frame_images
 
     fs = config["frames"][fset]
     return [fs["video"]] if fs.get("video") else frame_images(fs.get("images"))

@@ -46,6 +46,7 @@ rule products:
         "results/products/{name}/products.json",
     params:
         products={k: config["products"][k] for k in PROD_MAKE_KEYS},
+        map_heights=map_elevation_source() != "none",
     log:
         "logs/products/products/{name}.log",
     threads: 1
