@@ -421,7 +421,21 @@ def evaluate_query(
         except (InputError, ValueError, OSError) as exc:
             log.warning("segmentation accuracy skipped: %s", exc)
             out["segmentation"] = {"status": f"skipped: {exc}"}
+    skipped = products_skipped(products) if registered else {}
+    if skipped:
+        out["products_skipped"] = skipped
     return out
+
+
+def products_skipped(products_json: str | Path | None) -> dict[str, str]:
+    """Products the products stage skipped or wrote without heights, with the reason of each."""
+    if not products_json or not Path(products_json).exists():
+        return {}
+    try:
+        return dict(json.loads(Path(products_json).read_text()).get("skipped") or {})
+    except (OSError, json.JSONDecodeError) as exc:
+        log.warning("cannot read %s: %s", products_json, exc)
+        return {}
 
 
 def _fusion_gain(

@@ -332,6 +332,8 @@ def query_section(q: QueryInputs, reg: Mapping[str, Any], ev: Mapping[str, Any])
     if seg.get("overall_accuracy") is not None:
         kv.append(("segmentation overall accuracy", f"{seg['overall_accuracy']:.1%}"))
         kv.append(("segmentation mean IoU", seg.get("mean_iou")))
+    for product, why in sorted(((ev or {}).get("products_skipped") or {}).items()):
+        kv.append((f"skipped: {product}", why))
     t = reg.get("timings_s") or {}
     kv.append(("time (s): band + parts + fuse", fmt(query_seconds(reg), 1)))
     if t:
