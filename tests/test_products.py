@@ -289,3 +289,26 @@ def test_not_found_writes_only_a_manifest(tmp_path):
     assert m1["status"] == m2["status"] == "not_found" and m2["files"] == {}
     assert sorted(p.name for p in out.iterdir()) == ["cube.json", "products.json"]
     assert json.loads((out / "products.json").read_text())["reason"] == "no part accepted"
+
+
+def test_band_interleaved_cog_copy_keeps_pixels_and_is_a_cog(tmp_path):
+    """The products' cube COG is copied band by band (bounded memory): same pixels as the stage,
+    tiled, band interleaved, overviews down to about one block."""
+    from georeg.io.raster import is_cog, tiled_profile
+    from georeg.products.cube_resample import copy_band_interleaved_cog
+
+    rng = np.random.default_rng(3)
+    data = rng.integers(0, 4000, (12, 700, 530)).astype(np.uint16)
+    stage = tmp_path / "stage.tif"
+    prof = tiled_profile(530, 700, 12, "uint16", 0) | {
+        "crs": "EPSG:32611", "transform": rasterio.Affine(1, 0, 500000, 0, -1, 3760000)}
+    with rasterio.open(stage, "w", **prof) as ds:
+        ds.write(data)
+        ds.set_band_description(3, "1200.0 nm")
+    copy_band_interleaved_cog(stage, tmp_path / "cog.tif", cache_mb=8)
+    with rasterio.open(tmp_path / "cog.tif") as ds:
+        assert np.array_equal(ds.read(), data)
+        assert ds.interleaving.name == "band" and ds.block_shapes[0] == (256, 256)
+        assert ds.overviews(1) == [2, 4] and ds.descriptions[2] == "1200.0 nm"
+        assert ds.crs.to_epsg() == 32611 and ds.nodata == 0
+    assert is_cog(tmp_path / "cog.tif")

@@ -41,6 +41,9 @@ log = logging.getLogger(__name__)
 #: cap makes the band- to pixel-interleaved COG conversion re-read blocks (minutes instead of
 #: seconds for 260 bands): see docs/BENCHMARKS.md "Products".
 GDAL_CACHE_MB: int | None = None
+#: GDAL block cache of the band-interleaved COG copy (MB): it streams band by band, so a small
+#: cache costs no time (docs/SCALING.md "Products memory")
+COG_CACHE_MB: int = 128
 
 ENVI_TYPE_CODES = {"uint8": 1, "int16": 2, "int32": 3, "float32": 4, "float64": 5, "uint16": 12}
 
@@ -510,6 +513,42 @@ def _resample_chunk(
     return out
 
 
+def copy_band_interleaved_cog(
+    stage: str | os.PathLike,
+    out: str | os.PathLike,
+    overview_resampling: str = "nearest",
+    threads: int = 1,
+    cache_mb: int = COG_CACHE_MB,
+) -> None:
+    """A band-interleaved tiled GeoTIFF -> a band-interleaved Cloud Optimized GeoTIFF, streaming.
+
+    GDAL's COG driver (3.10) writes pixel interleave only: from a band-interleaved source every
+    output block needs a block of every band, so a 260-band cube either holds a whole block row of
+    all bands in the GDAL cache (~1.9 GB peak for the paper's cube) or re-reads blocks for minutes.
+    Here the overviews are built band by band into the stage, then the GTiff driver copies it with
+    ``COPY_SRC_OVERVIEWS=YES`` and ``INTERLEAVE=BAND`` (the COG layout: tiled, IFDs first,
+    overviews before the full-resolution data), one band after the other under a small cache.
+    """
+    from rasterio.enums import Resampling
+
+    with rasterio.Env(GDAL_CACHEMAX=cache_mb, GDAL_NUM_THREADS=str(max(1, threads))):
+        with rasterio.open(stage, "r+") as ds:
+            n = max(ds.width, ds.height)
+            factors = []
+            f = 2
+            while n / f >= 256 / 2:  # down to a block, as the COG driver's AUTO
+                factors.append(f)
+                f *= 2
+            if factors:
+                ds.build_overviews(factors, Resampling[overview_resampling])
+            predictor = 3 if np.dtype(ds.dtypes[0]).kind == "f" else 2
+        rasterio.shutil.copy(
+            stage, out, driver="GTiff", COPY_SRC_OVERVIEWS="YES", TILED="YES", BLOCKXSIZE=256,
+            BLOCKYSIZE=256, INTERLEAVE="BAND", COMPRESS="DEFLATE", PREDICTOR=predictor,
+            BIGTIFF="IF_SAFER",
+        )  # fmt: skip
+
+
 def resample_cube(
     cube: Cube,
     col: np.ndarray,
@@ -568,17 +607,8 @@ def resample_cube(
                 )
         t_write = time.perf_counter() - t0
         with atomic_path(out_tif) as tmp:
-            rasterio.shutil.copy(
-                tmp_gtiff,
-                tmp,
-                driver="COG",
-                compress="DEFLATE",
-                predictor="YES",
-                blocksize=256,
-                overviews="AUTO",
-                overview_resampling="nearest" if resampling == "nearest" else "average",
-                BIGTIFF="IF_SAFER",
-                num_threads=str(max(1, threads)),
+            copy_band_interleaved_cog(
+                tmp_gtiff, tmp, "nearest" if resampling == "nearest" else "average", threads
             )
     finally:
         if tmp_gtiff.exists():
