@@ -23,13 +23,15 @@ import tempfile
 import time
 from pathlib import Path
 
+REPO = Path(__file__).resolve().parents[1]
 CHILD = r"""
-import json, sys, time
+import json, os, sys, time
 import rasterio
 from georeg.products import cube_resample
 from georeg.products.make import make_cube
 
 method, out = sys.argv[1], sys.argv[2]
+os.chdir(sys.argv[3])  # the run's relative paths; imported from this checkout, not the run's
 if method == "cog_driver":
     def cog_driver(stage, dst, overview_resampling="nearest", threads=1, cache_mb=None):
         rasterio.shutil.copy(stage, dst, driver="COG", compress="DEFLATE", predictor="YES",
@@ -40,7 +42,8 @@ t = time.perf_counter()
 m = make_cube("results/queries/demo/registration.json", "results/queries/demo/geolocation.tif",
               "results/demo/queries/demo.hdr", out + "/cube.json", {}, "results/map/mosaic/ortho.vrt",
               "demo", 1)
-print(json.dumps({"wall_s": time.perf_counter() - t, "bands": m["cube"]["bands"]}))
+print(json.dumps({"wall_s": time.perf_counter() - t, "bands": m["cube"]["bands"],
+                  "georeg": cube_resample.__file__}))
 """
 
 
@@ -48,7 +51,10 @@ def run_once(run_dir: Path, method: str) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         out_f = Path(tmp) / "stdout.txt"
         with open(out_f, "w") as fh:
-            p = subprocess.Popen([sys.executable, "-c", CHILD, method, tmp], cwd=run_dir, stdout=fh)
+            p = subprocess.Popen(
+                [sys.executable, "-c", CHILD, method, tmp, str(run_dir.resolve())], cwd=REPO,
+                stdout=fh,
+            )
             _, status, ru = os.wait4(p.pid, 0)  # this child's own rusage
         p.returncode = os.waitstatus_to_exitcode(status)
         if p.returncode:

@@ -226,14 +226,28 @@ def write_cog(
 
 
 def is_cog(path: str | os.PathLike) -> bool:
-    """Cheap COG check: internally tiled, and has overviews when larger than one block."""
+    """COG check: internally tiled, overviews when larger than one block, and the COG layout:
+    every IFD (image and overviews) before the image data, the overviews' data before the
+    full-resolution data (what GDAL's validate_cloud_optimized_geotiff checks, read from GDAL's
+    TIFF metadata domain)."""
     with rasterio.open(path) as ds:
         bh, bw = ds.block_shapes[0]
         tiled = bw < ds.width or bh < ds.height or (bw == ds.width and bw % 16 == 0)
         needs_ovr = max(ds.width, ds.height) > max(bw, bh)
-        has_ovr = bool(ds.overviews(1))
-        layout = ds.tags(ns="IMAGE_STRUCTURE").get("LAYOUT", "")
-        return tiled and (has_ovr or not needs_ovr) and (layout in ("", "COG"))
+        n_ovr = len(ds.overviews(1))
+        if not tiled or (needs_ovr and not n_ovr):
+            return False
+
+        def item(key: str, ovr: int | None) -> int | None:
+            v = ds.get_tag_item(key, "TIFF", bidx=1, ovr=ovr)
+            return int(v) if v not in (None, "") else None
+
+        levels = [None, *range(n_ovr)]
+        ifds = [item("IFD_OFFSET", o) for o in levels]
+        data = [item("BLOCK_OFFSET_0_0", o) for o in levels]
+        if None in ifds or None in data:
+            return True  # offsets not exposed (e.g. not a GTiff): tiling and overviews only
+        return max(ifds) < min(data) and all(d < data[0] for d in data[1:])
 
 
 _GDAL_TYPES = {
