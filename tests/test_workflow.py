@@ -112,6 +112,7 @@ def _write_ortho(path: Path, crs: str | None = "EPSG:32633") -> None:
 def test_user_config_replaces_demo_map_and_queries(tmp_path):
     """A user's map/queries replace the demo's wholesale: no demo LiDAR, no demo queries."""
     _write_ortho(tmp_path / "my ortho.tif")
+    _write_ortho(tmp_path / "mine.tif")  # inputs are opened before the run: they must exist
     (tmp_path / "my.yaml").write_text(
         "map:\n  orthophoto: my ortho.tif\n"
         "queries:\n  mine:\n    image: mine.tif\n"
@@ -124,7 +125,7 @@ def test_user_config_replaces_demo_map_and_queries(tmp_path):
     assert "demo_scene" not in out and "results/demo" not in out  # no demo LiDAR, no demo scene
     # the user's query is planned from the user's image...
     proc = snakemake(tmp_path, "results/queries/mine/band.tif", "-n", "--configfile", my)
-    assert "mine.tif" in proc.stdout + proc.stderr  # planned (its image is missing here)
+    assert "mine.tif" in proc.stdout + proc.stderr  # planned
     # ...and the demo's queries are gone, not merged in
     for name in ("demo", "outside"):
         proc = snakemake(tmp_path, f"results/queries/{name}/band.tif", "-n", "--configfile", my)

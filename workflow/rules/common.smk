@@ -253,7 +253,7 @@ def rep_optional(key):
 
 def rep_products_defined():
     """True when the products stage (rule `products`, products.json) is part of the workflow.
-    By rule name: the outputs carry the global {name} constraint, so their text is not fixed."""
+    Checked by the name of the rule: its outputs carry the global {name} constraint."""
     return any(r.name == "products" for r in workflow.rules)
 
 
