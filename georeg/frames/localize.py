@@ -24,6 +24,16 @@ import cv2
 import numpy as np
 
 from georeg.frames.coarse import coarse_locate
+from georeg.frames.direct import DEFAULTS as DIRECT_DEFAULTS
+from georeg.frames.direct import (
+    Matches,
+    direct_pose,
+    ground_distance,
+    match_window,
+    polish,
+    verification_tolerance,
+    verify,
+)
 from georeg.frames.exif import exif_camera
 from georeg.frames.focal import estimate_focal
 from georeg.frames.outputs import (
@@ -60,7 +70,8 @@ DEFAULTS: dict[str, Any] = {
     "refine": {"enabled": True},
     "vote_starts": 2,  # nadir-vote poses also tried as render-stage starts (after the coarse PnP)
     "refine_max_extra_px": 1.5,  # refined pose kept if the PnP inliers' RMS grows less than this
-    "min_inliers": 15,  # final PnP inliers to call a frame registered
+    "min_inliers": 15,  # PnP inliers of a hypothesis, and its verification score, to register
+    "direct": {},  # overrides of georeg.frames.direct.DEFAULTS (direct matching, verification)
     "overlay_alpha": 0.5,
 }
 
@@ -83,26 +94,61 @@ class MapSources:
     """What a frame is registered to: the index, the mosaics, the LiDAR tiles, the CRS."""
 
     def __init__(self, index_dir, ortho_vrt, dsm_vrt, laz_paths=(), crs_wkt: str | None = None,
-                 dense_coarse: bool = True):  # fmt: skip
+                 dense_coarse: bool = True, ground_z: float = 0.0):  # fmt: skip
         from georeg.index.map_index import MapIndex
 
         self.index = MapIndex.load(index_dir)
-        self.ortho, self.dsm, self.laz = str(ortho_vrt), str(dsm_vrt), [str(p) for p in laz_paths]
+        self.ortho, self.laz = str(ortho_vrt), [str(p) for p in laz_paths]
+        self.dsm = str(dsm_vrt) if dsm_vrt else None
+        self.flat_z = float(ground_z)
         self.crs_wkt = crs_wkt or self.index.crs_wkt
         self.gsd = float(self.index.gsd_m or 1.0)
-        self.dense = (self.ortho, self.dsm) if dense_coarse else None
+        self.dense = (self.ortho, self.dsm, self.flat_z) if dense_coarse else None
+        self.coarse_index = self.index if self.dsm else FlatIndex(self.index, self.flat_z)
 
     def ground_z(self, C: np.ndarray, radius: float = 150.0) -> float:
-        """Median elevation of the map features within ``radius`` of C (x, y)."""
-        ids = self.index.features_in((C[0] - radius, C[1] - radius, C[0] + radius, C[1] + radius))
-        z = np.asarray(self.index.features(ids)["z"], float) if len(ids) else np.zeros(0)
-        z = z[np.isfinite(z)]
-        return float(np.median(z)) if z.size else float(C[2] - 100.0)
+        """Median elevation of the map features within ``radius`` of C (x, y), the radius grown
+        x4 up to 3 times where the map has no features (a nadir off the map's texture); the
+        flat ground's height without a DSM."""
+        if not self.dsm:
+            return self.flat_z
+        for k in range(4):
+            r = radius * 4**k
+            ids = self.index.features_in((C[0] - r, C[1] - r, C[0] + r, C[1] + r))
+            z = np.asarray(self.index.features(ids)["z"], float) if len(ids) else np.zeros(0)
+            z = z[np.isfinite(z)]
+            if z.size:
+                return float(np.median(z))
+        return float(C[2] - 100.0)
 
-    def cloud(self, bounds, source: str) -> PointCloud:
-        if source == "points" and self.laz:
-            return read_laz_cloud(self.laz, bounds)
-        return read_heightfield(self.ortho, self.dsm, bounds)
+    def ground_distance(self, cam: PinholeCamera) -> float:
+        return ground_distance(cam, self.ground_z(cam.C))
+
+    def cloud(self, cam: PinholeCamera, c: dict) -> PointCloud:
+        """The map around the footprint of ``cam``: ``cloud_margin_m`` around it, at most
+        ``max_cloud_extent_m`` or 1.5 x the footprint wide (a 6 km aerial footprint stays whole)."""
+        zg = self.ground_z(cam.C)
+        fp = footprint_xy(cam, zg)
+        cap = max(float(c["max_cloud_extent_m"]), 1.5 * float(np.ptp(fp, axis=0).max()))
+        b = footprint_window([cam], zg, float(c["cloud_margin_m"]), cap, centre=cam.C)
+        if c["render_source"] == "points" and self.laz:
+            return read_laz_cloud(self.laz, b)
+        return read_heightfield(self.ortho, self.dsm, b, flat_z=self.flat_z)
+
+
+class FlatIndex:
+    """A map index seen with every feature at the height ``z`` (a map without a DSM)."""
+
+    def __init__(self, index, z: float) -> None:
+        self._index, self._z = index, float(z)
+
+    def __getattr__(self, name: str):
+        return getattr(self._index, name)
+
+    def features(self, ids) -> dict[str, np.ndarray]:
+        f = dict(self._index.features(ids))
+        f["z"] = np.full(len(f["xy"]), self._z)
+        return f
 
 
 def display_render(cloud: PointCloud, cam: PinholeCamera, map_gsd: float) -> Render:
@@ -135,11 +181,21 @@ def localize_frame(
     return localize_image(rgb, str(path), camera, maps, conf)
 
 
+def _cam_record(cam: PinholeCamera) -> dict:
+    return {"camera_center_xyz": [float(v) for v in cam.C], "R_world_to_cam": np.asarray(cam.R).tolist()}
+
+
 def localize_image(
     rgb: np.ndarray, path: str, camera: dict | None, maps: MapSources, conf: dict
 ) -> tuple[dict, Any]:
     """Pose of one RGB frame named ``path`` (a file name, or ``video#index``); see
-    ``localize_frame``."""
+    ``localize_frame``.
+
+    Pose hypotheses, every one verified by the same score (``direct.verify``): the direct 2-D/3-D
+    match in the map window around the coarse location (always tried), render-match-PnP from
+    the best pose so far, and the intensity refinement of the best. The highest score wins
+    (``path``, ``verification`` in the record); a frame is ``not_found`` only when no hypothesis
+    reaches ``min_inliers``."""
     c = {**DEFAULTS, **(conf or {})}
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
@@ -149,7 +205,7 @@ def localize_image(
         K, dist = camera_matrix(camera, w, h)
         und = cv2.undistort(rgb, K, dist) if np.any(dist) else rgb
         gray = cv2.cvtColor(und, cv2.COLOR_RGB2GRAY)
-        co = coarse_locate(gray, K, maps.index, c["coarse"], maps.dense)
+        co = coarse_locate(gray, K, maps.coarse_index, c["coarse"], maps.dense)
         focal_note = camera.get("source", "given")  # "exif": from frame_exif
     else:
         und = rgb
@@ -157,7 +213,7 @@ def localize_image(
         co, K = None, None
         for fac in c["focal_factors"]:
             Kf, _ = camera_matrix(None, w, h, fac * w)
-            r = coarse_locate(gray, Kf, maps.index, c["coarse"], maps.dense)
+            r = coarse_locate(gray, Kf, maps.coarse_index, c["coarse"], maps.dense)
             log.info("focal search: fx = %.0f px -> %s, %d inliers", fac * w, r.ok, r.inliers)
             if co is None or (r.ok and r.inliers > co.inliers):
                 co, K = r, Kf
@@ -167,75 +223,132 @@ def localize_image(
     rec["intrinsics"] = {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]),
                          "cy": float(K[1, 2]), "dist": [float(v) for v in dist], "width": w,
                          "height": h, "source": focal_note}  # fmt: skip
+    rec["ground"] = ({"source": "dsm"} if maps.dsm else
+                     {"source": "flat (no DSM given)", "z": maps.flat_z})  # fmt: skip
     rec["coarse"] = {"ok": co.ok, "inliers": co.inliers, "reason": co.reason,
                      "candidates": co.candidates}  # fmt: skip
-    final_render = None
+    feat_conf = maps.index.meta.get("features_conf") or {}
+    min_inl = int(c["min_inliers"])
     starts = [(co.R, co.C, "coarse PnP")] if co.ok else []
     starts += [
         (R, C, f"nadir vote ({v} votes)") for R, C, v in co.hypotheses[: int(c["vote_starts"])]
     ]
     if not starts:
         rec["reason"] = f"coarse: {co.reason}"
+    cam_of = lambda R, C: PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, R, C)  # noqa: E731
+    # hypotheses: (path, camera, PnPResult or None); the matches every score is taken on
+    hyps: list[tuple[str, PinholeCamera, Any]] = []
+    windows: list[Matches] = []
+    vconf = {**DIRECT_DEFAULTS, **(c.get("direct") or {})}
+
+    # 1. direct 2-D/3-D matching around each start, until one gives a verified pose
+    t1 = time.perf_counter()
     for R0, C0, how in starts:
+        cam0 = cam_of(R0, C0)
+        dr, mt = direct_pose(gray, cam0, maps.ortho, maps.dsm, feat_conf, maps.gsd,
+                             maps.ground_z(C0), vconf, maps.flat_z)  # fmt: skip
+        windows.append(mt)
+        rec.setdefault("direct_attempts", []).append({"start": how, **dr.info})
+        if dr.pnp.ok and dr.pnp.inliers >= min_inl:
+            hyps.append(("direct 2D-3D", cam0.with_pose(dr.pnp.R, dr.pnp.C), dr.pnp))
+            break
+    timings["direct_s"] = time.perf_counter() - t1
+
+    # 2. render-match-PnP from the direct pose (else from the coarse starts, as before)
+    rstarts = [(hyps[0][1].R, hyps[0][1].C, "direct 2D-3D")] if hyps else starts
+    cloud, cloud_at, fcam = None, None, None
+    for R0, C0, how in rstarts:
         t1 = time.perf_counter()
-        cam0 = PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, R0, C0)
-        zg = maps.ground_z(C0)
-        b = footprint_window([cam0], zg, float(c["cloud_margin_m"]),
-                             float(c["max_cloud_extent_m"]), centre=C0)  # fmt: skip
-        cloud = maps.cloud(b, c["render_source"])
-        timings["cloud_s"] = time.perf_counter() - t1
+        cam0 = cam_of(R0, C0)
+        cloud, cloud_at = maps.cloud(cam0, c), C0
+        timings["cloud_s"] = timings.get("cloud_s", 0.0) + time.perf_counter() - t1
         t2 = time.perf_counter()
-        feat_conf = maps.index.meta.get("features_conf") or {}
         res = register_by_rendering(gray, cam0, cloud, maps.gsd, feat_conf, c["pnp"])
         if not camera and res.ok and int(c["focal_rounds"]) > 0:  # searched focal: refine it
             res, cam_f, rec["focal"] = estimate_focal(gray, res, cam0.with_pose(res.R, res.C), cloud,
                                                       maps.gsd, feat_conf, c["pnp"], int(c["focal_rounds"]))  # fmt: skip
             cam0 = dataclasses.replace(cam0, fx=cam_f.fx, fy=cam_f.fy)
-            rec["intrinsics"].update(fx=float(cam_f.fx), fy=float(cam_f.fy),
-                                     source="estimated (focal search, then refined in PnP)")  # fmt: skip
+            fcam = cam0
         timings["pnp_s"] = timings.get("pnp_s", 0.0) + time.perf_counter() - t2
         rec.setdefault("pnp_attempts", []).append({"start": how, "start_center_xyz": [float(v) for v in C0],
                                                    "inliers": res.inliers, "history": res.history})  # fmt: skip
-        if res.ok and res.inliers >= int(c["min_inliers"]):
-            cam = cam0.with_pose(res.R, res.C)
-            rec["pnp"] = {"camera_center_xyz": [float(v) for v in res.C], "R_world_to_cam": res.R.tolist(),
-                          "inliers": res.inliers, "reprojection_px": res.reprojection_px}  # fmt: skip
-            if (c.get("refine") or {}).get("enabled", True):
-                from georeg.frames.refine import refine_pose
-
-                t3 = time.perf_counter()
-                ref = refine_pose(gray, cam, cloud, c.get("refine") or {})
-                timings["refine_s"] = time.perf_counter() - t3
-                # the refinement must not contradict the PnP inliers (geometric evidence)
-                cam_r = cam.with_pose(ref.R, ref.C)
-                uv_r, _ = cam_r.project(res.inlier_xyz)
-                rms_r = float(np.sqrt(np.mean(np.sum((uv_r - res.inlier_uv) ** 2, axis=1))))
-                limit = max(
-                    2.0 * res.reprojection_px, res.reprojection_px + float(c["refine_max_extra_px"])
-                )
-                ref.info.update(
-                    inlier_rms_px=rms_r, inlier_rms_limit_px=limit, accepted=rms_r <= limit
-                )
-                rec["refine"] = ref.info
-                if rms_r <= limit:
-                    cam = cam_r
-            z_med = float(np.median(res.inlier_xyz[:, 2])) if res.inlier_xyz is not None else zg
-            rec.update(status="registered", camera_center_xyz=[float(v) for v in cam.C],
-                       R_world_to_cam=np.asarray(cam.R).tolist(), inliers=int(res.inliers),
-                       reprojection_px=float(res.reprojection_px),
-                       footprint_xy=footprint_xy(cam, z_med).tolist())  # fmt: skip
-            final_render = display_render(cloud, cam, maps.gsd)
+        if res.ok and res.inliers >= min_inl:
+            hyps.append(("render-match-PnP", cam0.with_pose(res.R, res.C), res))
             break
-        rec["reason"] = (
-            f"render-match-PnP: {res.inliers} inliers (< {c['min_inliers']}) from every start"
-        )
+
+    if fcam is not None:  # the focal refined on the render stage's inliers holds for every pose
+        hyps = [(p, dataclasses.replace(cm, fx=fcam.fx, fy=fcam.fy), r) for p, cm, r in hyps]
+
+    # 3. every hypothesis polished by LM on its guided matches over the whole frame, then scored
+    #    (guided inliers, the same map window); the intensity refinement of the best must beat it
+    t3 = time.perf_counter()
+
+    def window_of(cam: PinholeCamera) -> tuple[Matches, float]:
+        zg = maps.ground_z(cam.C)
+        mt = next((m for m in windows if m.contains(footprint_xy(cam, zg).mean(axis=0))), None)
+        if mt is None:
+            mt = match_window(gray, cam, maps.ortho, maps.dsm, feat_conf, maps.gsd, zg, vconf,
+                              maps.flat_z)  # fmt: skip
+            windows.append(mt)
+        return mt, verification_tolerance(cam, maps.gsd, zg, float(vconf["verify_px"]))
+
+    scored = []
+    for p, cam, res in hyps:
+        mt, tol = window_of(cam)
+        cam_p = polish(mt, cam, tol, int(vconf["polish_rounds"]))
+        v = verify(mt, cam_p, tol)
+        v["polish_moved_m"] = float(np.linalg.norm(cam_p.C - cam.C))
+        scored.append((p, cam_p, res, v))
+    timings["verify_s"] = time.perf_counter() - t3
+    scored.sort(key=lambda t: -t[3]["score"])
+    if scored and (c.get("refine") or {}).get("enabled", True):
+        from georeg.frames.refine import refine_pose
+
+        p, cam, res, v0 = scored[0]
+        t4 = time.perf_counter()
+        if cloud is None or np.linalg.norm(np.asarray(cloud_at) - cam.C) > 0.05 * maps.ground_distance(cam):
+            cloud, cloud_at = maps.cloud(cam, c), cam.C
+        ref = refine_pose(gray, cam, cloud, c.get("refine") or {})
+        cam_r = cam.with_pose(ref.R, ref.C)
+        timings["refine_s"] = time.perf_counter() - t4
+        mt, tol = window_of(cam_r)
+        v = verify(mt, cam_r, tol)
+        ref.info.update(start=p, score=v["score"], accepted=v["score"] > v0["score"])
+        scored.append((f"{p} + intensity refinement", cam_r, res, v))
+        scored.sort(key=lambda t: -t[3]["score"])  # stable: a tie keeps the unrefined pose
+        rec["refine"] = ref.info
+    rec["verification"] = {"candidates": [{"path": p, **v} for p, _, _, v in scored]}
+    final_render = None
+    if scored and scored[0][3]["score"] >= min_inl:
+        p, cam, res, v = scored[0]
+        rec["path"] = p
+        rec["verification"].update(v)
+        base = next(cm for pp, cm, _, _ in scored if pp == p.split(" + ")[0])
+        rec["pnp"] = {**_cam_record(base), "inliers": res.inliers,
+                      "reprojection_px": res.reprojection_px}  # fmt: skip
+        if cam.fx != K[0, 0]:
+            rec["intrinsics"].update(fx=float(cam.fx), fy=float(cam.fy),
+                                     source="estimated (focal search, then refined in PnP)")  # fmt: skip
+        z_med = float(np.median(res.inlier_xyz[:, 2])) if res.inlier_xyz is not None else maps.ground_z(cam.C)
+        rec.update(status="registered", **_cam_record(cam), inliers=int(res.inliers),
+                   reprojection_px=float(res.reprojection_px),
+                   footprint_xy=footprint_xy(cam, z_med).tolist())  # fmt: skip
+        rec.pop("reason", None)
+        if cloud is None or np.linalg.norm(np.asarray(cloud_at) - cam.C) > 0.05 * maps.ground_distance(cam):
+            cloud = maps.cloud(cam, c)
+        final_render = display_render(cloud, cam, maps.gsd)
+    elif starts:
+        best = max([v["score"] for _, _, _, v in scored], default=0)
+        rec["reason"] = (f"no pose hypothesis verified: best score {best} (< {min_inl}); direct "
+                         f"2D-3D and render-match-PnP from {len(starts)} coarse start(s)")  # fmt: skip
     if rec["status"] != "registered":
-        best_inl = max([a["inliers"] for a in rec.get("pnp_attempts", [])], default=0)
+        best_inl = max([a["inliers"] for a in rec.get("pnp_attempts", []) + rec.get("direct_attempts", [])],
+                       default=0)  # fmt: skip
         rec.update(camera_center_xyz=None, R_world_to_cam=None, inliers=int(best_inl),
                    reprojection_px=None)  # fmt: skip
     timings["total_s"] = time.perf_counter() - t0
     rec["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
-    log.info("frame %s: %s (%.1f s)", path, rec["status"], timings["total_s"])
+    log.info("frame %s: %s by %s (%.1f s)", path, rec["status"], rec.get("path"), timings["total_s"])
     return rec, (und, final_render)
 
 
