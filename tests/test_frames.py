@@ -255,3 +255,28 @@ def test_focal_searched_and_refined_without_exif(demo_map, maps):
     print(json.dumps(ev))
     # measured 5.4-6.0 m (h 4.4, v 3.3-4.1), 0.4 deg; the search alone (fx 800): 39 m, 1.8 deg
     assert ev["final"]["position_m"] < 15.0 and ev["final"]["rotation_deg"] < 1.5
+
+
+@pytest.mark.parametrize("kind", ["empty", "not_an_image", "tiny", "no_match"])
+def test_bad_frame_input_is_one_clear_error_and_nothing_written(tmp_path, kind):
+    """Bad frames stop the set before anything is written, with an error naming the file."""
+    import cv2
+
+    from georeg.frames.localize import localize_set
+    from georeg.io.errors import InputError
+
+    good = tmp_path / "good.png"
+    cv2.imwrite(str(good), np.full((120, 160, 3), 90, np.uint8))
+    bad = tmp_path / "bad.png"
+    if kind == "empty":
+        bad.write_bytes(b"")
+    elif kind == "not_an_image":
+        bad.write_text("not an image\n")
+    elif kind == "tiny":
+        cv2.imwrite(str(bad), np.full((40, 300, 3), 90, np.uint8))
+    images = [str(good), str(bad)] if kind != "no_match" else str(tmp_path / "none_*.png")
+    with pytest.raises(InputError) as ei:
+        localize_set(images, None, tmp_path / "no_index", tmp_path / "o.vrt", None, [], {},
+                     tmp_path / "out")  # fmt: skip
+    assert (str(bad) if kind != "no_match" else "matches no file") in str(ei.value)
+    assert not (tmp_path / "out").exists()

@@ -54,9 +54,12 @@ from georeg.frames.render import (
     read_laz_cloud,
     render,
 )
+from georeg.io.errors import InputError
 from georeg.io.video import frame_images, read_frame
 
 log = logging.getLogger(__name__)
+
+MIN_FRAME_PX = 64  # smaller frames are an input error
 
 DEFAULTS: dict[str, Any] = {
     "dense_coarse": True,  # coarse votes on dense features of the index's best windows
@@ -71,6 +74,7 @@ DEFAULTS: dict[str, Any] = {
     "vote_starts": 2,  # nadir-vote poses also tried as render-stage starts (after the coarse PnP)
     "refine_max_extra_px": 1.5,  # refined pose kept if the PnP inliers' RMS grows less than this
     "min_inliers": 15,  # PnP inliers of a hypothesis, and its verification score, to register
+    "render_after_direct": True,  # render-match-PnP also from a verified direct pose
     "direct": {},  # overrides of georeg.frames.direct.DEFAULTS (direct matching, verification)
     "overlay_alpha": 0.5,
 }
@@ -91,7 +95,8 @@ def camera_matrix(camera: dict | None, width: int, height: int, fx: float | None
 
 
 class MapSources:
-    """What a frame is registered to: the index, the mosaics, the LiDAR tiles, the CRS."""
+    """What a frame is registered to: the index, the mosaics, the LiDAR tiles, the CRS.
+    ``dsm_vrt`` None: no elevation, the ground is the plane z = ``ground_z``."""
 
     def __init__(self, index_dir, ortho_vrt, dsm_vrt, laz_paths=(), crs_wkt: str | None = None,
                  dense_coarse: bool = True, ground_z: float = 0.0):  # fmt: skip
@@ -170,12 +175,24 @@ def _rot_err(Ra, Rb) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1, 1))))
 
 
+def check_frame(path: str | Path) -> np.ndarray:
+    """The frame as RGB; ``InputError`` naming the file when it is not a readable image (empty,
+    truncated, not an image) or smaller than ``MIN_FRAME_PX`` on a side."""
+    if Path(path).is_file() and Path(path).stat().st_size == 0:
+        raise InputError(path, "empty frame file", "a PNG/JPEG/TIFF image")
+    rgb = read_frame(path)
+    if min(rgb.shape[:2]) < MIN_FRAME_PX:
+        raise InputError(path, f"frame of {rgb.shape[1]} x {rgb.shape[0]} px is too small to localise",
+                         f"at least {MIN_FRAME_PX} px per side")  # fmt: skip
+    return rgb
+
+
 def localize_frame(
     path: str, camera: dict | None, maps: MapSources, conf: dict
 ) -> tuple[dict, Any]:
     """Pose of one frame file; returns (pose record, (undistorted rgb, final Render or None)).
     ``camera`` None: the EXIF focal length when the file has one (``frame_exif``)."""
-    rgb = read_frame(path)
+    rgb = check_frame(path)
     if not camera:
         camera = exif_camera(path, rgb.shape[1], rgb.shape[0])
     return localize_image(rgb, str(path), camera, maps, conf)
@@ -256,6 +273,8 @@ def localize_image(
 
     # 2. render-match-PnP from the direct pose (else from the coarse starts, as before)
     rstarts = [(hyps[0][1].R, hyps[0][1].C, "direct 2D-3D")] if hyps else starts
+    if hyps and not c["render_after_direct"]:
+        rstarts = []
     cloud, cloud_at, fcam = None, None, None
     for R0, C0, how in rstarts:
         t1 = time.perf_counter()
@@ -368,15 +387,23 @@ def evaluate(rec: dict, truth: dict) -> dict:
 
 
 def localize_set(images: Any, camera: dict | None, index_dir, ortho_vrt, dsm_vrt, laz_paths,
-                 conf: dict, out_dir, truth_path: str | None = None) -> list[dict]:  # fmt: skip
-    """Rule ``localize_frames``: every frame of a set -> results/frames/{set}/."""
+                 conf: dict, out_dir, truth_path: str | None = None,
+                 ground_z: float = 0.0) -> list[dict]:  # fmt: skip
+    """Rule ``localize_frames``: every frame of a set -> results/frames/{set}/. ``dsm_vrt`` None:
+    the ground is the plane z = ``ground_z`` (recorded as ``ground`` in every pose)."""
     out = Path(out_dir)
+    paths = frame_images(images)
+    if not paths:
+        raise InputError(None, f"the frame list {images!r} matches no file", "check frames.<set>.images")
+    for p in paths:  # every frame readable and large enough before anything is written
+        check_frame(p)
     maps = MapSources(
         index_dir,
         ortho_vrt,
         dsm_vrt,
         laz_paths,
         dense_coarse=bool(conf.get("dense_coarse", DEFAULTS["dense_coarse"])),
+        ground_z=ground_z,
     )
     truth = {}
     if truth_path:
@@ -384,7 +411,7 @@ def localize_set(images: Any, camera: dict | None, index_dir, ortho_vrt, dsm_vrt
 
         truth = {Path(t["image"]).name: t for t in json.loads(Path(truth_path).read_text())}
     poses = []
-    for p in frame_images(images):
+    for p in paths:
         rec, (und, rend) = localize_frame(p, camera, maps, conf)
         if Path(p).name in truth:
             rec["evaluation"] = evaluate(rec, truth[Path(p).name])
