@@ -280,3 +280,20 @@ def test_bad_frame_input_is_one_clear_error_and_nothing_written(tmp_path, kind):
                      tmp_path / "out")  # fmt: skip
     assert (str(bad) if kind != "no_match" else "matches no file") in str(ei.value)
     assert not (tmp_path / "out").exists()
+
+
+def test_exif_orientation_is_honoured(tmp_path):
+    """A JPEG stored landscape with EXIF orientation 6 (rotate 90 deg clockwise to display) is
+    read upright: portrait, its stored top row on the right."""
+    from PIL import Image
+
+    from georeg.frames.localize import check_frame
+
+    a = np.zeros((100, 200, 3), np.uint8)
+    a[:10, :, 0] = 255  # stored top rows red
+    ex = Image.Exif()
+    ex[0x0112] = 6
+    Image.fromarray(a).save(tmp_path / "o6.jpg", exif=ex, quality=95)
+    rgb = check_frame(tmp_path / "o6.jpg")
+    assert rgb.shape == (200, 100, 3)
+    assert rgb[:, -8:, 0].mean() > 200 and rgb[:, :50, 0].mean() < 20

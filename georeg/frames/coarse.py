@@ -27,6 +27,7 @@ log = logging.getLogger(__name__)
 
 DEFAULTS: dict[str, Any] = {
     "scales": [1.0, 0.5, 0.25, 0.125],  # frame resizes tried (unknown GSD), features pooled
+    "max_frame_px": 3_000_000,  # scales shrunk so that the largest has at most this many pixels
     "window_m": 400.0,  # rank_regions window and stride
     "stride_m": 100.0,
     "top_candidates": 8,  # index regions voted in
@@ -99,7 +100,8 @@ def frame_keys(gray: np.ndarray, conf: dict, feat_conf: dict, K: np.ndarray | No
         img = cv2.warpPerspective(gray, Hn, size, flags=cv2.INTER_LINEAR)
         mask = cv2.warpPerspective(np.full_like(gray, 255), Hn, size, flags=cv2.INTER_NEAREST)
     xy_all, sz, an, d_all = [], [], [], []
-    for s in conf["scales"]:
+    top = min(1.0, float(np.sqrt(float(conf.get("max_frame_px") or np.inf) / (h * w))))
+    for s in (top * float(v) for v in conf["scales"]):
         small = cv2.resize(img, None, fx=s, fy=s, interpolation=cv2.INTER_AREA) if s < 1 else img
         ms = (
             None

@@ -353,9 +353,11 @@ def localize_image(
                    reprojection_px=float(res.reprojection_px),
                    footprint_xy=footprint_xy(cam, z_med).tolist())  # fmt: skip
         rec.pop("reason", None)
+        t5 = time.perf_counter()
         if cloud is None or np.linalg.norm(np.asarray(cloud_at) - cam.C) > 0.05 * maps.ground_distance(cam):
             cloud = maps.cloud(cam, c)
         final_render = display_render(cloud, cam, maps.gsd)
+        timings["overlay_render_s"] = time.perf_counter() - t5
     elif starts:
         best = max([v["score"] for _, _, _, v in scored], default=0)
         rec["reason"] = (f"no pose hypothesis verified: best score {best} (< {min_inl}); direct "

@@ -230,7 +230,8 @@ def heightfield_cloud(
         ]
         sh = np.where(np.isfinite(sh), sh, np.inf)
         nb_min = np.minimum(nb_min, sh)
-    drop = np.where(valid & np.isfinite(nb_min), z - nb_min, 0.0)
+    with np.errstate(invalid="ignore"):  # -inf - inf off the valid pixels, dropped below
+        drop = np.where(valid & np.isfinite(nb_min), z - nb_min, 0.0)
     wr, wc = np.nonzero(drop > wall_min_m)
     if wr.size:
         n = np.ceil(drop[wr, wc] / wall_step_m).astype(int)
