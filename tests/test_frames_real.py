@@ -105,3 +105,19 @@ def test_drone_frames_without_dsm_on_flat_ground(bench, tmp_path):
         assert rec["status"] == "registered", (name, rec.get("reason"))
         assert rec["ground"] == {"source": "flat (no DSM given)", "z": z0}
         assert pos < 5.0 and rot < 3.0, (name, pos, rot)
+
+
+def test_whole_map_direct_when_the_coarse_step_fails(bench, case_map):
+    """No coarse pose and no vote start (forced): on a small map the direct matching runs on the
+    whole map, like the baseline, and still lands within one map GSD."""
+    case, maps, gsd = case_map
+    if case != "ngi":
+        pytest.skip("one case is enough (the coarse step is forced to fail)")
+    frame, cam, truth = bench.case_frames(case)[1]
+    conf = {**CONF, "vote_starts": 0, "coarse": {"min_inliers": 10**6}}
+    rec = bench.ours(frame, cam, maps, conf)
+    pos, rot = bench.pose_errors(rec.get("R_world_to_cam"), rec.get("camera_center_xyz"), truth)
+    print(rec["status"], rec.get("path"), pos, rot, rec["timings_s"])
+    assert not rec["coarse"]["ok"]
+    assert rec["status"] == "registered" and rec["path"] == "direct 2D-3D (whole map)"
+    assert pos < gsd and rot < 0.5

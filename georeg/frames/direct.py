@@ -43,6 +43,7 @@ DEFAULTS: dict[str, Any] = {
     "margin_m": 120.0,  # ... and at least this
     "max_window_px": 16_000_000,  # map window read decimated above this
     "gsd_factor": 1.0,  # frame matched at about this x the map GSD (never upsampled)
+    "whole_map_px": 16_000_000,  # no verified pose from the coarse starts: the whole map when smaller
     "verify_px": 3.0,  # verification tolerance (full-resolution frame pixels), at least
     "polish_rounds": 3,  # LM rounds on the guided matches of a hypothesis before its score
     "seed": 0,
@@ -81,20 +82,26 @@ class Matches:
 
 
 def match_window(gray: np.ndarray, cam: PinholeCamera, ortho: str, dsm: str | None, feat_conf: dict,
-                 map_gsd: float, z_ground: float, conf: dict, flat_z: float = 0.0) -> Matches:  # fmt: skip
+                 map_gsd: float, z_ground: float, conf: dict, flat_z: float = 0.0,
+                 bounds: tuple | None = None, scale: float | None = None) -> Matches:  # fmt: skip
     """Ratio matches of the frame (at about the map's GSD) against the dense map features of the
-    window under the footprint of ``cam`` (grown by ``margin_frac`` / ``margin_m``)."""
+    window under the footprint of ``cam`` (grown by ``margin_frac`` / ``margin_m``). ``bounds``
+    and ``scale`` given (no pose known): that map window at its own GSD, the frame at that scale."""
     c = {**DEFAULTS, **(conf or {})}
     fconf = {**(feat_conf or {}), "upright": False, "max_features_per_mpx": None}
-    gsd_frame = ground_distance(cam, z_ground) / cam.fx
-    s = float(np.clip(gsd_frame / (float(c["gsd_factor"]) * map_gsd), 0.05, 1.0))
+    if bounds is None:
+        gsd_frame = ground_distance(cam, z_ground) / cam.fx
+        s = float(np.clip(gsd_frame / (float(c["gsd_factor"]) * map_gsd), 0.05, 1.0))
+        fp = footprint_xy(cam, z_ground)
+        lo, hi = fp.min(axis=0), fp.max(axis=0)
+        m = max(float(c["margin_m"]), float(c["margin_frac"]) * float(np.max(hi - lo)))
+        bounds = (lo[0] - m, lo[1] - m, hi[0] + m, hi[1] + m)
+        wgsd = max(map_gsd, 0.5 * gsd_frame)
+    else:
+        s, wgsd = float(scale or 1.0), None
     ff = frame_features(gray, s, fconf)
-    fp = footprint_xy(cam, z_ground)
-    lo, hi = fp.min(axis=0), fp.max(axis=0)
-    m = max(float(c["margin_m"]), float(c["margin_frac"]) * float(np.max(hi - lo)))
-    bounds = (lo[0] - m, lo[1] - m, hi[0] + m, hi[1] + m)
-    win = DenseWindow(ortho, dsm, bounds, fconf, gsd=max(map_gsd, 0.5 * gsd_frame),
-                      max_px=int(c["max_window_px"]), flat_z=flat_z)  # fmt: skip
+    win = DenseWindow(ortho, dsm, bounds, fconf, gsd=wgsd, max_px=int(c["max_window_px"]),
+                      flat_z=flat_z)  # fmt: skip
     if len(win) < 2 or len(ff.xy) == 0:
         e = np.zeros(0, np.int64)
         return Matches(win, ff, np.full(len(ff.xy), np.inf), np.zeros((0, 2)), np.zeros((0, 3)), e)
@@ -179,14 +186,18 @@ def polish(mt: Matches, cam: PinholeCamera, tol_px: float, rounds: int = 3) -> P
 
 
 def direct_pose(gray: np.ndarray, cam0: PinholeCamera, ortho: str, dsm: str | None, feat_conf: dict,
-                map_gsd: float, z_ground: float, conf: dict | None = None,
-                flat_z: float = 0.0) -> tuple[DirectResult, Matches]:  # fmt: skip
-    """PnP (MAGSAC++ + LM) on the direct matches in the map window around ``cam0``."""
+                map_gsd: float, z_ground: float, conf: dict | None = None, flat_z: float = 0.0,
+                bounds: tuple | None = None, scale: float | None = None,
+                ) -> tuple[DirectResult, Matches]:  # fmt: skip
+    """PnP (MAGSAC++ + LM) on the direct matches in the map window around ``cam0`` (or in
+    ``bounds``, the frame at ``scale``: only ``cam0``'s intrinsics are used then)."""
     c = {**DEFAULTS, **(conf or {})}
     t0 = time.perf_counter()
-    mt = match_window(gray, cam0, ortho, dsm, feat_conf, map_gsd, z_ground, c, flat_z)
-    gsd_frame = ground_distance(cam0, z_ground) / cam0.fx
-    thr = max(float(c["reproj_px"]), 2.0 * map_gsd / max(gsd_frame, 1e-9))
+    mt = match_window(gray, cam0, ortho, dsm, feat_conf, map_gsd, z_ground, c, flat_z, bounds, scale)
+    thr = float(c["reproj_px"])
+    if bounds is None:
+        gsd_frame = ground_distance(cam0, z_ground) / cam0.fx
+        thr = max(thr, 2.0 * map_gsd / max(gsd_frame, 1e-9))
     res = solve_pnp(mt.xyz, mt.uv, cam0.K, thr, int(c["max_iters"]), int(c["seed"]))
     why = plausible(res.R, res.C, mt.xyz) if res.ok else "PnP failed"
     if why:

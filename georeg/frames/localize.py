@@ -126,6 +126,18 @@ class MapSources:
                 return float(np.median(z))
         return float(C[2] - 100.0)
 
+    def bounds(self) -> tuple[float, float, float, float]:
+        import rasterio
+
+        with rasterio.open(self.ortho) as so:
+            return tuple(so.bounds)
+
+    def whole_map_px(self) -> int:
+        import rasterio
+
+        with rasterio.open(self.ortho) as so:
+            return int(so.width) * int(so.height)
+
     def ground_distance(self, cam: PinholeCamera) -> float:
         return ground_distance(cam, self.ground_z(cam.C))
 
@@ -250,8 +262,6 @@ def localize_image(
     starts += [
         (R, C, f"nadir vote ({v} votes)") for R, C, v in co.hypotheses[: int(c["vote_starts"])]
     ]
-    if not starts:
-        rec["reason"] = f"coarse: {co.reason}"
     cam_of = lambda R, C: PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, R, C)  # noqa: E731
     # hypotheses: (path, camera, PnPResult or None); the matches every score is taken on
     hyps: list[tuple[str, PinholeCamera, Any]] = []
@@ -269,6 +279,15 @@ def localize_image(
         if dr.pnp.ok and dr.pnp.inliers >= min_inl:
             hyps.append(("direct 2D-3D", cam0.with_pose(dr.pnp.R, dr.pnp.C), dr.pnp))
             break
+    if not hyps and maps.whole_map_px() <= int(vconf["whole_map_px"]):
+        # a small map: the whole of it, the frame at full size (at most 3 Mpx), like the baseline
+        s0 = min(1.0, float(np.sqrt(3e6 / (h * w))))
+        dr, mt = direct_pose(gray, cam_of(np.eye(3), np.zeros(3)), maps.ortho, maps.dsm, feat_conf,
+                             maps.gsd, 0.0, vconf, maps.flat_z, maps.bounds(), s0)  # fmt: skip
+        windows.append(mt)
+        rec.setdefault("direct_attempts", []).append({"start": "whole map", **dr.info})
+        if dr.pnp.ok and dr.pnp.inliers >= min_inl:
+            hyps.append(("direct 2D-3D (whole map)", cam_of(dr.pnp.R, dr.pnp.C), dr.pnp))
     timings["direct_s"] = time.perf_counter() - t1
 
     # 2. render-match-PnP from the direct pose (else from the coarse starts, as before)
@@ -358,10 +377,12 @@ def localize_image(
             cloud = maps.cloud(cam, c)
         final_render = display_render(cloud, cam, maps.gsd)
         timings["overlay_render_s"] = time.perf_counter() - t5
-    elif starts:
+    else:
         best = max([v["score"] for _, _, _, v in scored], default=0)
-        rec["reason"] = (f"no pose hypothesis verified: best score {best} (< {min_inl}); direct "
-                         f"2D-3D and render-match-PnP from {len(starts)} coarse start(s)")  # fmt: skip
+        tried = [a["start"] for a in rec.get("direct_attempts", [])]
+        rec["reason"] = (f"no pose hypothesis verified: best score {best} (< {min_inl}); coarse: "
+                         f"{co.reason or 'ok'}; direct 2D-3D from {tried or 'no start'}, "
+                         f"render-match-PnP from {len(rstarts)} start(s)")  # fmt: skip
     if rec["status"] != "registered":
         best_inl = max([a["inliers"] for a in rec.get("pnp_attempts", []) + rec.get("direct_attempts", [])],
                        default=0)  # fmt: skip
