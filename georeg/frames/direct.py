@@ -44,8 +44,10 @@ DEFAULTS: dict[str, Any] = {
     "max_window_px": 16_000_000,  # map window read decimated above this
     "gsd_factor": 1.0,  # frame matched at about this x the map GSD (never upsampled)
     "whole_map_px": 16_000_000,  # no verified pose from the coarse starts: the whole map when smaller
+    "whole_map_first_px": 4_000_000,  # known camera, map smaller: the whole map before the coarse step
     "verify_px": 3.0,  # verification tolerance (full-resolution frame pixels), at least
     "polish_rounds": 3,  # LM rounds on the guided matches of a hypothesis before its score
+    "polish_distinct": True,  # polish on guided matches that are also window-wide nearest
     "seed": 0,
 }
 
@@ -121,13 +123,13 @@ def match_window(gray: np.ndarray, cam: PinholeCamera, ortho: str, dsm: str | No
                    qi[good])  # fmt: skip
 
 
-def guided_matches(mt: Matches, cam: PinholeCamera, radius: float,
-                   ratio: float = 0.9) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def guided_matches(mt: Matches, cam: PinholeCamera, radius: float, ratio: float = 0.9,
+                   distinct: bool = True) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """Matches predicted by the pose ``cam``: each frame keypoint takes the nearest descriptor
     among the map features projecting within ``radius`` px, kept when it passes a ratio test
-    against the second of those and is the keypoint's nearest in the whole window (closer than
-    its second-nearest); one frame keypoint per map feature. Returns (frame keypoint ids, map
-    feature ids)."""
+    against the second of those and (``distinct``) is the keypoint's nearest in the whole window
+    (closer than its second-nearest); one frame keypoint per map feature. Returns (frame keypoint
+    ids, map feature ids)."""
     from scipy.spatial import cKDTree
 
     e = np.zeros(0, np.int64)
@@ -155,19 +157,20 @@ def guided_matches(mt: Matches, cam: PinholeCamera, radius: float,
     has2[has2] &= qa[nxt[has2]] == qa[idx[has2]]
     d2 = np.full(len(idx), np.inf)
     d2[has2] = d[nxt[has2]]
-    keep = (d[idx] < ratio * d2) & (d[idx] < mt.d2[qa[idx]])
+    keep = (d[idx] < ratio * d2) & ((d[idx] < mt.d2[qa[idx]]) | (not distinct))
     q, m, dd = qa[idx[keep]], ma[idx[keep]], d[idx[keep]]
     o = np.lexsort((dd, m))
     f = np.r_[True, m[o][1:] != m[o][:-1]]
     return q[o[f]], m[o[f]]
 
 
-def polish(mt: Matches, cam: PinholeCamera, tol_px: float, rounds: int = 3) -> PinholeCamera:
+def polish(mt: Matches, cam: PinholeCamera, tol_px: float, rounds: int = 3,
+           distinct: bool = True) -> PinholeCamera:  # fmt: skip
     """Levenberg-Marquardt on the guided matches of the pose, radius 2 ``tol_px`` then
     ``tol_px``, matches re-predicted every round; the pose unchanged when too few."""
     for k in range(rounds):
         r = tol_px * (2.0 if k == 0 else 1.0)
-        q, m = guided_matches(mt, cam, r)
+        q, m = guided_matches(mt, cam, r, distinct=distinct)
         if len(q) < 6:
             break
         uv, xyz = mt.ff.xy[q], mt.map_xyz[m]

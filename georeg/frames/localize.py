@@ -23,7 +23,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from georeg.frames.coarse import coarse_locate
+from georeg.frames.coarse import Coarse, coarse_locate
 from georeg.frames.direct import DEFAULTS as DIRECT_DEFAULTS
 from georeg.frames.direct import (
     Matches,
@@ -230,11 +230,36 @@ def localize_image(
     timings: dict[str, float] = {}
     h, w = rgb.shape[:2]
     rec: dict[str, Any] = {"image": str(path), "status": "not_found"}
+    feat_conf = maps.index.meta.get("features_conf") or {}
+    min_inl = int(c["min_inliers"])
+    # hypotheses: (path, camera, PnPResult); the map windows their scores are taken on
+    hyps: list[tuple[str, PinholeCamera, Any]] = []
+    windows: list[Matches] = []
+    vconf = {**DIRECT_DEFAULTS, **(c.get("direct") or {})}
+    map_px = maps.whole_map_px()
+
+    def whole_map() -> None:
+        """Direct matching on the whole (small) map, the frame at full size (at most 3 Mpx)."""
+        t = time.perf_counter()
+        cam0 = PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, np.eye(3), np.zeros(3))
+        dr, mt = direct_pose(gray, cam0, maps.ortho, maps.dsm, feat_conf, maps.gsd, 0.0, vconf,
+                             maps.flat_z, maps.bounds(), min(1.0, float(np.sqrt(3e6 / (h * w)))))  # fmt: skip
+        windows.append(mt)
+        rec.setdefault("direct_attempts", []).append({"start": "whole map", **dr.info})
+        if dr.pnp.ok and dr.pnp.inliers >= min_inl:
+            hyps.append(("direct 2D-3D (whole map)", cam0.with_pose(dr.pnp.R, dr.pnp.C), dr.pnp))
+        timings["direct_s"] = timings.get("direct_s", 0.0) + time.perf_counter() - t
+
     if camera:
         K, dist = camera_matrix(camera, w, h)
         und = cv2.undistort(rgb, K, dist) if np.any(dist) else rgb
         gray = cv2.cvtColor(und, cv2.COLOR_RGB2GRAY)
-        co = coarse_locate(gray, K, maps.coarse_index, c["coarse"], maps.dense)
+        if map_px <= int(vconf["whole_map_first_px"]):
+            whole_map()  # a small map: cheaper than the coarse search
+        t0c = time.perf_counter()
+        co = (coarse_locate(gray, K, maps.coarse_index, c["coarse"], maps.dense) if not hyps else
+              Coarse(False, reason="not run: the whole-map direct matching gave a pose"))  # fmt: skip
+        timings["coarse_s"] = time.perf_counter() - t0c
         focal_note = camera.get("source", "given")  # "exif": from frame_exif
     else:
         und = rgb
@@ -248,7 +273,7 @@ def localize_image(
                 co, K = r, Kf
         dist = np.zeros(5)
         focal_note = "estimated (focal search in PnP)"
-    timings["coarse_s"] = time.perf_counter() - t0
+        timings["coarse_s"] = time.perf_counter() - t0
     rec["intrinsics"] = {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]),
                          "cy": float(K[1, 2]), "dist": [float(v) for v in dist], "width": w,
                          "height": h, "source": focal_note}  # fmt: skip
@@ -256,21 +281,15 @@ def localize_image(
                      {"source": "flat (no DSM given)", "z": maps.flat_z})  # fmt: skip
     rec["coarse"] = {"ok": co.ok, "inliers": co.inliers, "reason": co.reason,
                      "candidates": co.candidates}  # fmt: skip
-    feat_conf = maps.index.meta.get("features_conf") or {}
-    min_inl = int(c["min_inliers"])
     starts = [(co.R, co.C, "coarse PnP")] if co.ok else []
     starts += [
         (R, C, f"nadir vote ({v} votes)") for R, C, v in co.hypotheses[: int(c["vote_starts"])]
     ]
     cam_of = lambda R, C: PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, R, C)  # noqa: E731
-    # hypotheses: (path, camera, PnPResult or None); the matches every score is taken on
-    hyps: list[tuple[str, PinholeCamera, Any]] = []
-    windows: list[Matches] = []
-    vconf = {**DIRECT_DEFAULTS, **(c.get("direct") or {})}
 
     # 1. direct 2-D/3-D matching around each start, until one gives a verified pose
     t1 = time.perf_counter()
-    for R0, C0, how in starts:
+    for R0, C0, how in starts if not hyps else []:
         cam0 = cam_of(R0, C0)
         dr, mt = direct_pose(gray, cam0, maps.ortho, maps.dsm, feat_conf, maps.gsd,
                              maps.ground_z(C0), vconf, maps.flat_z)  # fmt: skip
@@ -279,16 +298,10 @@ def localize_image(
         if dr.pnp.ok and dr.pnp.inliers >= min_inl:
             hyps.append(("direct 2D-3D", cam0.with_pose(dr.pnp.R, dr.pnp.C), dr.pnp))
             break
-    if not hyps and maps.whole_map_px() <= int(vconf["whole_map_px"]):
-        # a small map: the whole of it, the frame at full size (at most 3 Mpx), like the baseline
-        s0 = min(1.0, float(np.sqrt(3e6 / (h * w))))
-        dr, mt = direct_pose(gray, cam_of(np.eye(3), np.zeros(3)), maps.ortho, maps.dsm, feat_conf,
-                             maps.gsd, 0.0, vconf, maps.flat_z, maps.bounds(), s0)  # fmt: skip
-        windows.append(mt)
-        rec.setdefault("direct_attempts", []).append({"start": "whole map", **dr.info})
-        if dr.pnp.ok and dr.pnp.inliers >= min_inl:
-            hyps.append(("direct 2D-3D (whole map)", cam_of(dr.pnp.R, dr.pnp.C), dr.pnp))
-    timings["direct_s"] = time.perf_counter() - t1
+    timings["direct_s"] = timings.get("direct_s", 0.0) + time.perf_counter() - t1
+    tried_whole = any(a["start"] == "whole map" for a in rec.get("direct_attempts", []))
+    if not hyps and not tried_whole and map_px <= int(vconf["whole_map_px"]):
+        whole_map()
 
     # 2. render-match-PnP from the direct pose (else from the coarse starts, as before)
     rstarts = [(hyps[0][1].R, hyps[0][1].C, "direct 2D-3D")] if hyps else starts
@@ -333,7 +346,7 @@ def localize_image(
     scored = []
     for p, cam, res in hyps:
         mt, tol = window_of(cam)
-        cam_p = polish(mt, cam, tol, int(vconf["polish_rounds"]))
+        cam_p = polish(mt, cam, tol, int(vconf["polish_rounds"]), bool(vconf["polish_distinct"]))
         v = verify(mt, cam_p, tol)
         v["polish_moved_m"] = float(np.linalg.norm(cam_p.C - cam.C))
         scored.append((p, cam_p, res, v))
