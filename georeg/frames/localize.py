@@ -141,16 +141,21 @@ class MapSources:
     def ground_distance(self, cam: PinholeCamera) -> float:
         return ground_distance(cam, self.ground_z(cam.C))
 
-    def cloud(self, cam: PinholeCamera, c: dict) -> PointCloud:
+    def cloud(self, bounds, source: str) -> PointCloud:
+        """The map cloud of a window (x0, y0, x1, y1): ``points`` (the LiDAR tiles) or the
+        height field of the mosaics."""
+        if source == "points" and self.laz:
+            return read_laz_cloud(self.laz, bounds)
+        return read_heightfield(self.ortho, self.dsm, bounds, flat_z=self.flat_z)
+
+    def cloud_around(self, cam: PinholeCamera, c: dict) -> PointCloud:
         """The map around the footprint of ``cam``: ``cloud_margin_m`` around it, at most
         ``max_cloud_extent_m`` or 1.5 x the footprint wide (a 6 km aerial footprint stays whole)."""
         zg = self.ground_z(cam.C)
         fp = footprint_xy(cam, zg)
         cap = max(float(c["max_cloud_extent_m"]), 1.5 * float(np.ptp(fp, axis=0).max()))
         b = footprint_window([cam], zg, float(c["cloud_margin_m"]), cap, centre=cam.C)
-        if c["render_source"] == "points" and self.laz:
-            return read_laz_cloud(self.laz, b)
-        return read_heightfield(self.ortho, self.dsm, b, flat_z=self.flat_z)
+        return self.cloud(b, c["render_source"])
 
 
 class FlatIndex:
@@ -311,7 +316,7 @@ def localize_image(
     for R0, C0, how in rstarts:
         t1 = time.perf_counter()
         cam0 = cam_of(R0, C0)
-        cloud, cloud_at = maps.cloud(cam0, c), C0
+        cloud, cloud_at = maps.cloud_around(cam0, c), C0
         timings["cloud_s"] = timings.get("cloud_s", 0.0) + time.perf_counter() - t1
         t2 = time.perf_counter()
         res = register_by_rendering(gray, cam0, cloud, maps.gsd, feat_conf, c["pnp"])
@@ -358,7 +363,7 @@ def localize_image(
         p, cam, res, v0 = scored[0]
         t4 = time.perf_counter()
         if cloud is None or np.linalg.norm(np.asarray(cloud_at) - cam.C) > 0.05 * maps.ground_distance(cam):
-            cloud, cloud_at = maps.cloud(cam, c), cam.C
+            cloud, cloud_at = maps.cloud_around(cam, c), cam.C
         ref = refine_pose(gray, cam, cloud, c.get("refine") or {})
         cam_r = cam.with_pose(ref.R, ref.C)
         timings["refine_s"] = time.perf_counter() - t4
@@ -387,7 +392,7 @@ def localize_image(
         rec.pop("reason", None)
         t5 = time.perf_counter()
         if cloud is None or np.linalg.norm(np.asarray(cloud_at) - cam.C) > 0.05 * maps.ground_distance(cam):
-            cloud = maps.cloud(cam, c)
+            cloud = maps.cloud_around(cam, c)
         final_render = display_render(cloud, cam, maps.gsd)
         timings["overlay_render_s"] = time.perf_counter() - t5
     else:
