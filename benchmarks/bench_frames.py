@@ -237,7 +237,8 @@ def real_rows(case: str, work: Path, pan: bool = False, conf: dict | None = None
                                  "errors": pose_errors(b["R"], b["C"], truth)},
                     "ours": {"status": o["status"], "inliers": o.get("inliers"), "seconds": o["seconds"],
                              "errors": pose_errors(ob[1], ob[0], truth), "path": o.get("path"),
-                             "score": (o.get("verification") or {}).get("score")}})  # fmt: skip
+                             "score": (o.get("verification") or {}).get("score"),
+                             "timings_s": o.get("timings_s")}})  # fmt: skip
     return out
 
 
@@ -254,6 +255,18 @@ def real_table(rs: list[dict]) -> None:
         print(f"| {r['case']} | {r['frame']} | {r['map_gsd']} m | {b['status']}, {e(b)}, {b['inliers']}, "
               f"{b['seconds']:.1f} | {o['status']}, {e(o)} | {o['path'] or '-'} ({o['score']}) | "
               f"{o['seconds']:.1f} |")  # fmt: skip
+
+
+def stage_table(rs: list[dict]) -> None:
+    """Seconds per stage of ours (``timings_s`` of each pose record)."""
+    keys = ["direct_s", "coarse_s", "cloud_s", "pnp_s", "verify_s", "refine_s", "overlay_render_s",
+            "total_s"]  # fmt: skip
+    print("\n| case | frame | " + " | ".join(k[:-2] for k in keys) + " |")
+    print("|---|---|" + "---|" * len(keys))
+    for r in rs:
+        t = r["ours"].get("timings_s") or {}
+        print(f"| {r['case']} | {r['frame']} | " + " | ".join(f"{t[k]:.1f}" if k in t else "-" for k in keys)
+              + " |")  # fmt: skip
 
 
 def main(argv: list[str]) -> None:
@@ -273,6 +286,7 @@ def main(argv: list[str]) -> None:
         if a.pan:
             rs += real_rows(case, a.work / f"{case}_pan", pan=True)
     real_table(rs)
+    stage_table(rs)
 
 
 if __name__ == "__main__":
