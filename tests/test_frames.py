@@ -297,3 +297,25 @@ def test_exif_orientation_is_honoured(tmp_path):
     rgb = check_frame(tmp_path / "o6.jpg")
     assert rgb.shape == (200, 100, 3)
     assert rgb[:, -8:, 0].mean() > 200 and rgb[:, :50, 0].mean() < 20
+
+
+def test_heightfield_of_a_16bit_single_band_ortho_without_dsm(tmp_path):
+    """A 1-band uint16 orthophoto renders gray (stretched to 8 bits), and without a DSM every
+    point lies on the flat ground z = flat_z."""
+    import rasterio
+    from affine import Affine
+
+    from georeg.frames.render import read_heightfield
+
+    a = (np.arange(40 * 50, dtype=np.uint16).reshape(40, 50) * 20 + 1000).astype(np.uint16)
+    prof = {"driver": "GTiff", "width": 50, "height": 40, "count": 1, "dtype": "uint16",
+            "crs": "EPSG:32633", "transform": Affine(2.0, 0, 1000.0, 0, -2.0, 5000.0), "nodata": 0}  # fmt: skip
+    with rasterio.open(tmp_path / "pan16.tif", "w", **prof) as d:
+        d.write(a, 1)
+    cloud = read_heightfield(tmp_path / "pan16.tif", None, (1000.0, 4920.0, 1100.0, 5000.0), flat_z=12.5)
+    assert len(cloud) == 40 * 50 and np.all(cloud.xyz[:, 2] == 12.5)
+    assert cloud.rgb.dtype == np.uint8
+    assert np.all(cloud.rgb[:, 0] == cloud.rgb[:, 1]) and np.all(cloud.rgb[:, 1] == cloud.rgb[:, 2])
+    assert cloud.rgb[:, 0].min() <= 2 and cloud.rgb[:, 0].max() >= 253  # stretched, not clipped to 0/255
+    # brightness follows the 16-bit values (row-major gradient)
+    assert np.all(np.diff(cloud.rgb[:50, 0].astype(int)) >= 0)
