@@ -319,3 +319,48 @@ def test_heightfield_of_a_16bit_single_band_ortho_without_dsm(tmp_path):
     assert cloud.rgb[:, 0].min() <= 2 and cloud.rgb[:, 0].max() >= 253  # stretched, not clipped to 0/255
     # brightness follows the 16-bit values (row-major gradient)
     assert np.all(np.diff(cloud.rgb[:50, 0].astype(int)) >= 0)
+
+
+def test_guided_polish_recovers_a_perturbed_pose_and_scores_the_truth_highest():
+    """Synthetic map features on rough ground seen by a known camera (descriptors shared, keypoints
+    with 0.3 px noise): guided matching at the truth finds them all, the polish brings a pose
+    ~1 px off back to the truth, and a pose 8 px off scores ~0."""
+    from georeg.frames.direct import Matches, guided_matches, polish, verify
+    from georeg.frames.pnp import FrameFeatures
+
+    rng = np.random.default_rng(5)
+    n = 400
+    xyz = np.c_[rng.uniform(-300, 300, n), rng.uniform(-220, 220, n), rng.uniform(0, 30, n)]
+    C = np.array([10.0, -5.0, 800.0])
+    cam = PinholeCamera(700.0, 700.0, 399.5, 299.5, 800, 600, pose_from_angles(C, 40.0, 10.0), C)
+    uv, _ = cam.project(xyz)
+    ins = (uv[:, 0] > 0) & (uv[:, 0] < 799) & (uv[:, 1] > 0) & (uv[:, 1] < 599)
+    xyz, uv = xyz[ins], uv[ins]
+    desc = rng.normal(size=(len(xyz), 128)).astype(np.float32)
+    desc /= np.linalg.norm(desc, axis=1, keepdims=True)
+
+    class Win:  # the slice of DenseWindow that Matches uses
+        def __init__(self):
+            self.xy, self.z, self.desc, self.bounds = xyz[:, :2], xyz[:, 2], desc, (-400, -300, 400, 300)
+
+        def __len__(self):
+            return len(self.xy)
+
+    ff = FrameFeatures(uv + rng.normal(0, 0.3, uv.shape), desc.copy(), 1.0)
+    d2 = np.full(len(uv), 1.2)  # every keypoint's second-nearest is far
+    mt = Matches(Win(), ff, d2, ff.xy, xyz, np.arange(len(uv)))
+    q, m = guided_matches(mt, cam, 3.0)
+    assert len(q) == len(uv) and np.array_equal(q, m)
+    v_true = verify(mt, cam, 3.0)
+    assert v_true["score"] == len(uv) and v_true["rms_px"] < 0.6
+    # ~1.1 px at the image centre: 1.3 m sideways at 800 m
+    off = cam.with_pose(cam.R, cam.C + 1.3 * cam.R[0])
+    back = polish(mt, off, 3.0)
+
+    def px_off(c):  # mean image distance to the truth's projections
+        return float(np.linalg.norm(c.project(xyz)[0] - uv, axis=1).mean())
+
+    # measured 1.17 -> 0.03 px (0.37 m: with 0.3 px noise, a lateral shift and a tilt trade off)
+    assert px_off(off) > 1.0 and px_off(back) < 0.15 and np.linalg.norm(back.C - cam.C) < 0.8
+    far = cam.with_pose(cam.R, cam.C + 9.0 * cam.R[0])  # ~8 px
+    assert verify(mt, far, 3.0)["score"] < 0.05 * len(uv)

@@ -159,6 +159,8 @@ def guided_matches(mt: Matches, cam: PinholeCamera, radius: float, ratio: float 
     d2[has2] = d[nxt[has2]]
     keep = (d[idx] < ratio * d2) & ((d[idx] < mt.d2[qa[idx]]) | (not distinct))
     q, m, dd = qa[idx[keep]], ma[idx[keep]], d[idx[keep]]
+    if not len(q):
+        return e, e
     o = np.lexsort((dd, m))
     f = np.r_[True, m[o][1:] != m[o][:-1]]
     return q[o[f]], m[o[f]]
