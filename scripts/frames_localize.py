@@ -13,11 +13,12 @@ def main(smk):
         fs.get("camera"),
         Path(smk.input.index).parent,
         smk.input.ortho,
-        smk.input.dsm,
+        smk.input.dsm[0] if smk.input.dsm else None,
         list(smk.input.laz),
         dict(smk.params.frame_loc),
         Path(smk.output.poses).parent,
         smk.input.truth[0] if smk.input.truth else None,
+        ground_z=float(smk.params.ground_z),
     )
 
 

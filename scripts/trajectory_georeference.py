@@ -9,8 +9,10 @@ from georeg.trajectory.pipeline import georeference_video
 
 def main(smk):
     fl = dict(smk.params.frame_loc)
-    maps = MapSources(Path(smk.input.index).parent, smk.input.ortho, smk.input.dsm,
-                      list(smk.input.laz), dense_coarse=bool(fl.get("dense_coarse", True)))  # fmt: skip
+    maps = MapSources(Path(smk.input.index).parent, smk.input.ortho,
+                      smk.input.dsm[0] if smk.input.dsm else None, list(smk.input.laz),
+                      dense_coarse=bool(fl.get("dense_coarse", True)),
+                      ground_z=float(smk.params.ground_z))  # fmt: skip
     georeference_video(
         dict(smk.params.frames),
         maps,

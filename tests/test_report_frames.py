@@ -54,7 +54,8 @@ def _truth_path(n: int) -> np.ndarray:
 def page(tmp_path_factory) -> tuple[Path, str, dict]:
     root = tmp_path_factory.mktemp("report_frames")
     drone = root / "frames" / "drone"
-    poses = [_entry("a", "registered", "registered", PNP_A, ERR_A),
+    poses = [_entry("a", "registered", "registered", PNP_A, ERR_A, path="direct 2D-3D",
+                    verification={"score": 321, "candidates": []}),
              _entry("b", "not_found", "registered"),
              _entry("c", "not_found", "not_found"),
              _entry("d", "registered", "registered", PNP_D, ERR_D)]  # fmt: skip
@@ -153,6 +154,8 @@ def test_frame_rows_and_mean_equal_the_json(page) -> None:
         assert _num(r["inliers"]) == s["inliers"]
         assert _num(r["reprojection_px"]) == s["reprojection_px"]
         assert _num(r["seconds"]) == 12.5
+        assert r["path"] == (s.get("path") or "")
+        assert _num(r["verification_score"]) == (s.get("verification") or {}).get("score")
         for key in ("pnp", "final"):
             e = s["evaluation"].get(key) or {}
             for k in ("horizontal_m", "vertical_m", "rotation_deg"):

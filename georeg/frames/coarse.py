@@ -27,6 +27,7 @@ log = logging.getLogger(__name__)
 
 DEFAULTS: dict[str, Any] = {
     "scales": [1.0, 0.5, 0.25, 0.125],  # frame resizes tried (unknown GSD), features pooled
+    "max_frame_px": 3_000_000,  # scales shrunk so that the largest has at most this many pixels
     "window_m": 400.0,  # rank_regions window and stride
     "stride_m": 100.0,
     "top_candidates": 8,  # index regions voted in
@@ -99,7 +100,8 @@ def frame_keys(gray: np.ndarray, conf: dict, feat_conf: dict, K: np.ndarray | No
         img = cv2.warpPerspective(gray, Hn, size, flags=cv2.INTER_LINEAR)
         mask = cv2.warpPerspective(np.full_like(gray, 255), Hn, size, flags=cv2.INTER_NEAREST)
     xy_all, sz, an, d_all = [], [], [], []
-    for s in conf["scales"]:
+    top = min(1.0, float(np.sqrt(float(conf.get("max_frame_px") or np.inf) / (h * w))))
+    for s in (top * float(v) for v in conf["scales"]):
         small = cv2.resize(img, None, fx=s, fy=s, interpolation=cv2.INTER_AREA) if s < 1 else img
         ms = (
             None
@@ -188,38 +190,51 @@ class DenseWindow:
 
     The index stores at most ``max_features_per_mpx`` features: a 100 m drone footprint then
     holds ~60 map features, too few to verify; the window re-extracts them densely from the
-    orthophoto and DSM mosaics (cost ~1 s per 0.5 km2 at 1 m).
+    orthophoto and DSM mosaics (cost ~1 s per 0.5 km2 at 1 m). ``gsd``: features extracted at
+    this ground sampling (None: the ortho's); the window is read decimated when it would exceed
+    ``max_px`` pixels. ``dsm`` None: every feature at the height ``flat_z``. Any band count and
+    bit depth: the ortho goes through ``rgb_to_gray`` and ``to_uint8``.
     """
 
-    def __init__(self, ortho: str, dsm: str, bounds, feat_conf: dict) -> None:
+    def __init__(self, ortho: str, dsm: str | None, bounds, feat_conf: dict, gsd: float | None = None,
+                 max_px: int = 16_000_000, flat_z: float = 0.0) -> None:  # fmt: skip
         import rasterio
+        from affine import Affine
+        from rasterio.enums import Resampling
         from rasterio.windows import from_bounds
 
         from georeg.index.features import rgb_to_gray, tile_features
 
         with rasterio.open(ortho) as so:
             win = from_bounds(*bounds, so.transform).round_offsets().round_lengths()
-            win = win.intersection(rasterio.windows.Window(0, 0, so.width, so.height))
-            rgb = so.read(window=win)
-            mask = so.read_masks(1, window=win) > 0
-            tr = so.window_transform(win)
-        with rasterio.open(dsm) as sd:
-            wd = (
-                from_bounds(*rasterio.windows.bounds(win, so.transform), sd.transform)
-                .round_offsets()
-                .round_lengths()
-            )
-            z = sd.read(
-                1,
-                window=wd,
-                boundless=True,
-                fill_value=sd.nodata if sd.nodata is not None else np.nan,
-            )
-            dtr, dnod = sd.window_transform(wd), sd.nodata
-        conf = {**feat_conf, "max_features_per_mpx": None}
-        tf = tile_features(rgb_to_gray(rgb), mask, tr, conf, None, (z, dtr, dnod))
+            try:
+                win = win.intersection(rasterio.windows.Window(0, 0, so.width, so.height))
+            except rasterio.errors.WindowError:  # the window is off the map
+                win = rasterio.windows.Window(0, 0, 1, 1)
+            native = abs(so.transform.a)
+            dec = max(1.0, (gsd or native) / native, np.sqrt(win.width * win.height / max_px))
+            shape = (max(1, int(win.height / dec)), max(1, int(win.width / dec)))
+            bands = list(range(1, min(3, so.count) + 1))
+            rs = Resampling.average if dec > 1 else Resampling.nearest
+            rgb = so.read(bands, window=win, out_shape=(len(bands), *shape), resampling=rs)
+            mask = so.read_masks(1, window=win, out_shape=shape) > 0
+            t0 = so.window_transform(win)
+            tr = Affine(t0.a * win.width / shape[1], 0, t0.c, 0, t0.e * win.height / shape[0], t0.f)
+            wb = rasterio.windows.bounds(win, so.transform)
+        if dsm is not None:
+            with rasterio.open(dsm) as sd:
+                wd = from_bounds(*wb, sd.transform).round_offsets().round_lengths()
+                z = sd.read(1, window=wd, boundless=True,
+                            fill_value=sd.nodata if sd.nodata is not None else np.nan)  # fmt: skip
+                elev = (z, sd.window_transform(wd), sd.nodata)
+        else:
+            elev = None
+        conf = {**feat_conf, "max_features_per_mpx": None, "gsd_m": None}
+        tf = tile_features(rgb_to_gray(rgb), mask, tr, conf, None, elev)
         self.bounds = tuple(float(v) for v in bounds)
-        self.xy, self.z = tf.xy, tf.z.astype(np.float64)
+        self.gsd = float(abs(tr.a))
+        self.xy = tf.xy
+        self.z = tf.z.astype(np.float64) if elev is not None else np.full(len(tf), float(flat_z))
         self.scale, self.angle = tf.scale, tf.angle
         self.desc = tf.desc.astype(np.float32) / 512.0
         self._ix = None
@@ -294,10 +309,10 @@ def plausible(R: np.ndarray, C: np.ndarray, xyz: np.ndarray) -> str:
 
 
 def coarse_locate(gray: np.ndarray, K: np.ndarray, index, conf: dict | None = None,
-                  dense: tuple[str, str] | None = None) -> Coarse:  # fmt: skip
+                  dense: tuple | None = None) -> Coarse:  # fmt: skip
     """Candidate areas from the index, a nadir vote (area, heading, GSD) per tilt hypothesis,
-    then a PnP pose from a re-match inside the voted footprint. ``dense`` = (ortho, dsm)
-    mosaics: the votes and re-matches use dense features of the candidate windows
+    then a PnP pose from a re-match inside the voted footprint. ``dense`` = (ortho, dsm[, flat z])
+    mosaics (dsm None: flat ground at that z): the votes and re-matches use dense features of the candidate windows
     (``DenseWindow``) instead of the index's capped ones."""
     c = {**DEFAULTS, **(conf or {})}
     feat_conf = index.meta.get("features_conf") or {}
@@ -377,7 +392,8 @@ def coarse_locate(gray: np.ndarray, K: np.ndarray, index, conf: dict | None = No
             if any(w.bounds[0] <= b[0] and w.bounds[1] <= b[1] and w.bounds[2] >= b[2] and w.bounds[3] >= b[3]
                    for w in windows):  # fmt: skip
                 continue  # already searched densely
-            src = DenseWindow(dense[0], dense[1], gb, feat_conf)
+            src = DenseWindow(dense[0], dense[1], gb, feat_conf, gsd=feat_conf.get("gsd_m"),
+                              flat_z=float(dense[2]) if len(dense) > 2 else 0.0)  # fmt: skip
             windows.append(src)
             log.info("coarse: dense window %d: %d map features", len(windows), len(src))
         ids = src.features_in(gb)

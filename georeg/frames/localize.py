@@ -23,7 +23,17 @@ from typing import Any
 import cv2
 import numpy as np
 
-from georeg.frames.coarse import coarse_locate
+from georeg.frames.coarse import Coarse, coarse_locate
+from georeg.frames.direct import DEFAULTS as DIRECT_DEFAULTS
+from georeg.frames.direct import (
+    Matches,
+    direct_pose,
+    ground_distance,
+    match_window,
+    polish,
+    verification_tolerance,
+    verify,
+)
 from georeg.frames.exif import exif_camera
 from georeg.frames.focal import estimate_focal
 from georeg.frames.outputs import (
@@ -44,9 +54,12 @@ from georeg.frames.render import (
     read_laz_cloud,
     render,
 )
+from georeg.io.errors import InputError
 from georeg.io.video import frame_images, read_frame
 
 log = logging.getLogger(__name__)
+
+MIN_FRAME_PX = 64  # smaller frames are an input error
 
 DEFAULTS: dict[str, Any] = {
     "dense_coarse": True,  # coarse votes on dense features of the index's best windows
@@ -60,7 +73,9 @@ DEFAULTS: dict[str, Any] = {
     "refine": {"enabled": True},
     "vote_starts": 2,  # nadir-vote poses also tried as render-stage starts (after the coarse PnP)
     "refine_max_extra_px": 1.5,  # refined pose kept if the PnP inliers' RMS grows less than this
-    "min_inliers": 15,  # final PnP inliers to call a frame registered
+    "min_inliers": 15,  # PnP inliers of a hypothesis, and its verification score, to register
+    "render_after_direct": True,  # render-match-PnP also from a verified direct pose
+    "direct": {},  # overrides of georeg.frames.direct.DEFAULTS (direct matching, verification)
     "overlay_alpha": 0.5,
 }
 
@@ -80,29 +95,82 @@ def camera_matrix(camera: dict | None, width: int, height: int, fx: float | None
 
 
 class MapSources:
-    """What a frame is registered to: the index, the mosaics, the LiDAR tiles, the CRS."""
+    """What a frame is registered to: the index, the mosaics, the LiDAR tiles, the CRS.
+    ``dsm_vrt`` None: no elevation, the ground is the plane z = ``ground_z``."""
 
     def __init__(self, index_dir, ortho_vrt, dsm_vrt, laz_paths=(), crs_wkt: str | None = None,
-                 dense_coarse: bool = True):  # fmt: skip
+                 dense_coarse: bool = True, ground_z: float = 0.0):  # fmt: skip
         from georeg.index.map_index import MapIndex
 
         self.index = MapIndex.load(index_dir)
-        self.ortho, self.dsm, self.laz = str(ortho_vrt), str(dsm_vrt), [str(p) for p in laz_paths]
+        self.ortho, self.laz = str(ortho_vrt), [str(p) for p in laz_paths]
+        self.dsm = str(dsm_vrt) if dsm_vrt else None
+        self.flat_z = float(ground_z)
         self.crs_wkt = crs_wkt or self.index.crs_wkt
         self.gsd = float(self.index.gsd_m or 1.0)
-        self.dense = (self.ortho, self.dsm) if dense_coarse else None
+        self.dense = (self.ortho, self.dsm, self.flat_z) if dense_coarse else None
+        self.coarse_index = self.index if self.dsm else FlatIndex(self.index, self.flat_z)
 
     def ground_z(self, C: np.ndarray, radius: float = 150.0) -> float:
-        """Median elevation of the map features within ``radius`` of C (x, y)."""
-        ids = self.index.features_in((C[0] - radius, C[1] - radius, C[0] + radius, C[1] + radius))
-        z = np.asarray(self.index.features(ids)["z"], float) if len(ids) else np.zeros(0)
-        z = z[np.isfinite(z)]
-        return float(np.median(z)) if z.size else float(C[2] - 100.0)
+        """Median elevation of the map features within ``radius`` of C (x, y), the radius grown
+        x4 up to 3 times where the map has no features (a nadir off the map's texture); the
+        flat ground's height without a DSM."""
+        if not self.dsm:
+            return self.flat_z
+        for k in range(4):
+            r = radius * 4**k
+            ids = self.index.features_in((C[0] - r, C[1] - r, C[0] + r, C[1] + r))
+            z = np.asarray(self.index.features(ids)["z"], float) if len(ids) else np.zeros(0)
+            z = z[np.isfinite(z)]
+            if z.size:
+                return float(np.median(z))
+        return float(C[2] - 100.0)
+
+    def bounds(self) -> tuple[float, float, float, float]:
+        import rasterio
+
+        with rasterio.open(self.ortho) as so:
+            return tuple(so.bounds)
+
+    def whole_map_px(self) -> int:
+        import rasterio
+
+        with rasterio.open(self.ortho) as so:
+            return int(so.width) * int(so.height)
+
+    def ground_distance(self, cam: PinholeCamera) -> float:
+        return ground_distance(cam, self.ground_z(cam.C))
 
     def cloud(self, bounds, source: str) -> PointCloud:
+        """The map cloud of a window (x0, y0, x1, y1): ``points`` (the LiDAR tiles) or the
+        height field of the mosaics."""
         if source == "points" and self.laz:
             return read_laz_cloud(self.laz, bounds)
-        return read_heightfield(self.ortho, self.dsm, bounds)
+        return read_heightfield(self.ortho, self.dsm, bounds, flat_z=self.flat_z)
+
+    def cloud_around(self, cam: PinholeCamera, c: dict) -> PointCloud:
+        """The map around the footprint of ``cam``: ``cloud_margin_m`` around it, at most
+        ``max_cloud_extent_m`` or 1.5 x the footprint wide (a 6 km aerial footprint stays whole)."""
+        zg = self.ground_z(cam.C)
+        fp = footprint_xy(cam, zg)
+        cap = max(float(c["max_cloud_extent_m"]), 1.5 * float(np.ptp(fp, axis=0).max()))
+        b = footprint_window([cam], zg, float(c["cloud_margin_m"]), cap, centre=cam.C)
+        return self.cloud(b, c["render_source"])
+
+
+class FlatIndex:
+    """A map index seen with every feature at the height ``z`` (a map without a DSM)."""
+
+    def __init__(self, index, z: float) -> None:
+        self._index, self._z = index, float(z)
+
+    def __getattr__(self, name: str):
+        return getattr(self._index, name)
+
+    def features(self, ids) -> dict[str, np.ndarray]:
+        f = dict(self._index.features(ids))
+        f["z"] = np.full(len(f["xy"]), self._z)
+        return f
 
 
 def display_render(cloud: PointCloud, cam: PinholeCamera, map_gsd: float) -> Render:
@@ -124,32 +192,79 @@ def _rot_err(Ra, Rb) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1, 1))))
 
 
+def check_frame(path: str | Path) -> np.ndarray:
+    """The frame as RGB; ``InputError`` naming the file when it is not a readable image (empty,
+    truncated, not an image) or smaller than ``MIN_FRAME_PX`` on a side."""
+    if Path(path).is_file() and Path(path).stat().st_size == 0:
+        raise InputError(path, "empty frame file", "a PNG/JPEG/TIFF image")
+    rgb = read_frame(path)
+    if min(rgb.shape[:2]) < MIN_FRAME_PX:
+        raise InputError(path, f"frame of {rgb.shape[1]} x {rgb.shape[0]} px is too small to localise",
+                         f"at least {MIN_FRAME_PX} px per side")  # fmt: skip
+    return rgb
+
+
 def localize_frame(
     path: str, camera: dict | None, maps: MapSources, conf: dict
 ) -> tuple[dict, Any]:
     """Pose of one frame file; returns (pose record, (undistorted rgb, final Render or None)).
     ``camera`` None: the EXIF focal length when the file has one (``frame_exif``)."""
-    rgb = read_frame(path)
+    rgb = check_frame(path)
     if not camera:
         camera = exif_camera(path, rgb.shape[1], rgb.shape[0])
     return localize_image(rgb, str(path), camera, maps, conf)
+
+
+def _cam_record(cam: PinholeCamera) -> dict:
+    return {"camera_center_xyz": [float(v) for v in cam.C], "R_world_to_cam": np.asarray(cam.R).tolist()}
 
 
 def localize_image(
     rgb: np.ndarray, path: str, camera: dict | None, maps: MapSources, conf: dict
 ) -> tuple[dict, Any]:
     """Pose of one RGB frame named ``path`` (a file name, or ``video#index``); see
-    ``localize_frame``."""
+    ``localize_frame``.
+
+    Pose hypotheses, every one verified by the same score (``direct.verify``): the direct 2-D/3-D
+    match in the map window around the coarse location (always tried), render-match-PnP from
+    the best pose so far, and the intensity refinement of the best. The highest score wins
+    (``path``, ``verification`` in the record); a frame is ``not_found`` only when no hypothesis
+    reaches ``min_inliers``."""
     c = {**DEFAULTS, **(conf or {})}
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
     h, w = rgb.shape[:2]
     rec: dict[str, Any] = {"image": str(path), "status": "not_found"}
+    feat_conf = maps.index.meta.get("features_conf") or {}
+    min_inl = int(c["min_inliers"])
+    # hypotheses: (path, camera, PnPResult); the map windows their scores are taken on
+    hyps: list[tuple[str, PinholeCamera, Any]] = []
+    windows: list[Matches] = []
+    vconf = {**DIRECT_DEFAULTS, **(c.get("direct") or {})}
+    map_px = maps.whole_map_px()
+
+    def whole_map() -> None:
+        """Direct matching on the whole (small) map, the frame at full size (at most 3 Mpx)."""
+        t = time.perf_counter()
+        cam0 = PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, np.eye(3), np.zeros(3))
+        dr, mt = direct_pose(gray, cam0, maps.ortho, maps.dsm, feat_conf, maps.gsd, 0.0, vconf,
+                             maps.flat_z, maps.bounds(), min(1.0, float(np.sqrt(3e6 / (h * w)))))  # fmt: skip
+        windows.append(mt)
+        rec.setdefault("direct_attempts", []).append({"start": "whole map", **dr.info})
+        if dr.pnp.ok and dr.pnp.inliers >= min_inl:
+            hyps.append(("direct 2D-3D (whole map)", cam0.with_pose(dr.pnp.R, dr.pnp.C), dr.pnp))
+        timings["direct_s"] = timings.get("direct_s", 0.0) + time.perf_counter() - t
+
     if camera:
         K, dist = camera_matrix(camera, w, h)
         und = cv2.undistort(rgb, K, dist) if np.any(dist) else rgb
         gray = cv2.cvtColor(und, cv2.COLOR_RGB2GRAY)
-        co = coarse_locate(gray, K, maps.index, c["coarse"], maps.dense)
+        if map_px <= int(vconf["whole_map_first_px"]):
+            whole_map()  # a small map: cheaper than the coarse search
+        t0c = time.perf_counter()
+        co = (coarse_locate(gray, K, maps.coarse_index, c["coarse"], maps.dense) if not hyps else
+              Coarse(False, reason="not run: the whole-map direct matching gave a pose"))  # fmt: skip
+        timings["coarse_s"] = time.perf_counter() - t0c
         focal_note = camera.get("source", "given")  # "exif": from frame_exif
     else:
         und = rgb
@@ -157,85 +272,143 @@ def localize_image(
         co, K = None, None
         for fac in c["focal_factors"]:
             Kf, _ = camera_matrix(None, w, h, fac * w)
-            r = coarse_locate(gray, Kf, maps.index, c["coarse"], maps.dense)
+            r = coarse_locate(gray, Kf, maps.coarse_index, c["coarse"], maps.dense)
             log.info("focal search: fx = %.0f px -> %s, %d inliers", fac * w, r.ok, r.inliers)
             if co is None or (r.ok and r.inliers > co.inliers):
                 co, K = r, Kf
         dist = np.zeros(5)
         focal_note = "estimated (focal search in PnP)"
-    timings["coarse_s"] = time.perf_counter() - t0
+        timings["coarse_s"] = time.perf_counter() - t0
     rec["intrinsics"] = {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]),
                          "cy": float(K[1, 2]), "dist": [float(v) for v in dist], "width": w,
                          "height": h, "source": focal_note}  # fmt: skip
+    rec["ground"] = ({"source": "dsm"} if maps.dsm else
+                     {"source": "flat (no DSM given)", "z": maps.flat_z})  # fmt: skip
     rec["coarse"] = {"ok": co.ok, "inliers": co.inliers, "reason": co.reason,
                      "candidates": co.candidates}  # fmt: skip
-    final_render = None
     starts = [(co.R, co.C, "coarse PnP")] if co.ok else []
     starts += [
         (R, C, f"nadir vote ({v} votes)") for R, C, v in co.hypotheses[: int(c["vote_starts"])]
     ]
-    if not starts:
-        rec["reason"] = f"coarse: {co.reason}"
-    for R0, C0, how in starts:
+    cam_of = lambda R, C: PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, R, C)  # noqa: E731
+
+    # 1. direct 2-D/3-D matching around each start, until one gives a verified pose
+    t1 = time.perf_counter()
+    for R0, C0, how in starts if not hyps else []:
+        cam0 = cam_of(R0, C0)
+        dr, mt = direct_pose(gray, cam0, maps.ortho, maps.dsm, feat_conf, maps.gsd,
+                             maps.ground_z(C0), vconf, maps.flat_z)  # fmt: skip
+        windows.append(mt)
+        rec.setdefault("direct_attempts", []).append({"start": how, **dr.info})
+        if dr.pnp.ok and dr.pnp.inliers >= min_inl:
+            hyps.append(("direct 2D-3D", cam0.with_pose(dr.pnp.R, dr.pnp.C), dr.pnp))
+            break
+    timings["direct_s"] = timings.get("direct_s", 0.0) + time.perf_counter() - t1
+    tried_whole = any(a["start"] == "whole map" for a in rec.get("direct_attempts", []))
+    if not hyps and not tried_whole and map_px <= int(vconf["whole_map_px"]):
+        whole_map()
+
+    # 2. render-match-PnP from the direct pose (else from the coarse starts, as before)
+    rstarts = [(hyps[0][1].R, hyps[0][1].C, "direct 2D-3D")] if hyps else starts
+    if hyps and not c["render_after_direct"]:
+        rstarts = []
+    cloud, cloud_at, fcam = None, None, None
+    for R0, C0, how in rstarts:
         t1 = time.perf_counter()
-        cam0 = PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, R0, C0)
-        zg = maps.ground_z(C0)
-        b = footprint_window([cam0], zg, float(c["cloud_margin_m"]),
-                             float(c["max_cloud_extent_m"]), centre=C0)  # fmt: skip
-        cloud = maps.cloud(b, c["render_source"])
-        timings["cloud_s"] = time.perf_counter() - t1
+        cam0 = cam_of(R0, C0)
+        cloud, cloud_at = maps.cloud_around(cam0, c), C0
+        timings["cloud_s"] = timings.get("cloud_s", 0.0) + time.perf_counter() - t1
         t2 = time.perf_counter()
-        feat_conf = maps.index.meta.get("features_conf") or {}
         res = register_by_rendering(gray, cam0, cloud, maps.gsd, feat_conf, c["pnp"])
         if not camera and res.ok and int(c["focal_rounds"]) > 0:  # searched focal: refine it
             res, cam_f, rec["focal"] = estimate_focal(gray, res, cam0.with_pose(res.R, res.C), cloud,
                                                       maps.gsd, feat_conf, c["pnp"], int(c["focal_rounds"]))  # fmt: skip
             cam0 = dataclasses.replace(cam0, fx=cam_f.fx, fy=cam_f.fy)
-            rec["intrinsics"].update(fx=float(cam_f.fx), fy=float(cam_f.fy),
-                                     source="estimated (focal search, then refined in PnP)")  # fmt: skip
+            fcam = cam0
         timings["pnp_s"] = timings.get("pnp_s", 0.0) + time.perf_counter() - t2
         rec.setdefault("pnp_attempts", []).append({"start": how, "start_center_xyz": [float(v) for v in C0],
                                                    "inliers": res.inliers, "history": res.history})  # fmt: skip
-        if res.ok and res.inliers >= int(c["min_inliers"]):
-            cam = cam0.with_pose(res.R, res.C)
-            rec["pnp"] = {"camera_center_xyz": [float(v) for v in res.C], "R_world_to_cam": res.R.tolist(),
-                          "inliers": res.inliers, "reprojection_px": res.reprojection_px}  # fmt: skip
-            if (c.get("refine") or {}).get("enabled", True):
-                from georeg.frames.refine import refine_pose
-
-                t3 = time.perf_counter()
-                ref = refine_pose(gray, cam, cloud, c.get("refine") or {})
-                timings["refine_s"] = time.perf_counter() - t3
-                # the refinement must not contradict the PnP inliers (geometric evidence)
-                cam_r = cam.with_pose(ref.R, ref.C)
-                uv_r, _ = cam_r.project(res.inlier_xyz)
-                rms_r = float(np.sqrt(np.mean(np.sum((uv_r - res.inlier_uv) ** 2, axis=1))))
-                limit = max(
-                    2.0 * res.reprojection_px, res.reprojection_px + float(c["refine_max_extra_px"])
-                )
-                ref.info.update(
-                    inlier_rms_px=rms_r, inlier_rms_limit_px=limit, accepted=rms_r <= limit
-                )
-                rec["refine"] = ref.info
-                if rms_r <= limit:
-                    cam = cam_r
-            z_med = float(np.median(res.inlier_xyz[:, 2])) if res.inlier_xyz is not None else zg
-            rec.update(status="registered", camera_center_xyz=[float(v) for v in cam.C],
-                       R_world_to_cam=np.asarray(cam.R).tolist(), inliers=int(res.inliers),
-                       reprojection_px=float(res.reprojection_px),
-                       footprint_xy=footprint_xy(cam, z_med).tolist())  # fmt: skip
-            final_render = display_render(cloud, cam, maps.gsd)
+        if res.ok and res.inliers >= min_inl:
+            hyps.append(("render-match-PnP", cam0.with_pose(res.R, res.C), res))
             break
-        rec["reason"] = (
-            f"render-match-PnP: {res.inliers} inliers (< {c['min_inliers']}) from every start"
-        )
+
+    if fcam is not None:  # the focal refined on the render stage's inliers holds for every pose
+        hyps = [(p, dataclasses.replace(cm, fx=fcam.fx, fy=fcam.fy), r) for p, cm, r in hyps]
+
+    # 3. every hypothesis polished by LM on its guided matches over the whole frame, then scored
+    #    (guided inliers, the same map window); the intensity refinement of the best must beat it
+    t3 = time.perf_counter()
+
+    def window_of(cam: PinholeCamera) -> tuple[Matches, float]:
+        zg = maps.ground_z(cam.C)
+        mt = next((m for m in windows if m.contains(footprint_xy(cam, zg).mean(axis=0))), None)
+        if mt is None:
+            mt = match_window(gray, cam, maps.ortho, maps.dsm, feat_conf, maps.gsd, zg, vconf,
+                              maps.flat_z)  # fmt: skip
+            windows.append(mt)
+        return mt, verification_tolerance(cam, maps.gsd, zg, float(vconf["verify_px"]))
+
+    scored = []
+    for p, cam, res in hyps:
+        mt, tol = window_of(cam)
+        cam_p = polish(mt, cam, tol, int(vconf["polish_rounds"]), bool(vconf["polish_distinct"]))
+        v = verify(mt, cam_p, tol)
+        v["polish_moved_m"] = float(np.linalg.norm(cam_p.C - cam.C))
+        scored.append((p, cam_p, res, v))
+    timings["verify_s"] = time.perf_counter() - t3
+    scored.sort(key=lambda t: -t[3]["score"])
+    if scored and (c.get("refine") or {}).get("enabled", True):
+        from georeg.frames.refine import refine_pose
+
+        p, cam, res, v0 = scored[0]
+        t4 = time.perf_counter()
+        if cloud is None or np.linalg.norm(np.asarray(cloud_at) - cam.C) > 0.05 * maps.ground_distance(cam):
+            cloud, cloud_at = maps.cloud_around(cam, c), cam.C
+        ref = refine_pose(gray, cam, cloud, c.get("refine") or {})
+        cam_r = cam.with_pose(ref.R, ref.C)
+        timings["refine_s"] = time.perf_counter() - t4
+        mt, tol = window_of(cam_r)
+        v = verify(mt, cam_r, tol)
+        ref.info.update(start=p, score=v["score"], accepted=v["score"] > v0["score"])
+        scored.append((f"{p} + intensity refinement", cam_r, res, v))
+        scored.sort(key=lambda t: -t[3]["score"])  # stable: a tie keeps the unrefined pose
+        rec["refine"] = ref.info
+    rec["verification"] = {"candidates": [{"path": p, **v} for p, _, _, v in scored]}
+    final_render = None
+    if scored and scored[0][3]["score"] >= min_inl:
+        p, cam, res, v = scored[0]
+        rec["path"] = p
+        rec["verification"].update(v)
+        base = next(cm for pp, cm, _, _ in scored if pp == p.split(" + ")[0])
+        rec["pnp"] = {**_cam_record(base), "inliers": res.inliers,
+                      "reprojection_px": res.reprojection_px}  # fmt: skip
+        if cam.fx != K[0, 0]:
+            rec["intrinsics"].update(fx=float(cam.fx), fy=float(cam.fy),
+                                     source="estimated (focal search, then refined in PnP)")  # fmt: skip
+        z_med = float(np.median(res.inlier_xyz[:, 2])) if res.inlier_xyz is not None else maps.ground_z(cam.C)
+        rec.update(status="registered", **_cam_record(cam), inliers=int(res.inliers),
+                   reprojection_px=float(res.reprojection_px),
+                   footprint_xy=footprint_xy(cam, z_med).tolist())  # fmt: skip
+        rec.pop("reason", None)
+        t5 = time.perf_counter()
+        if cloud is None or np.linalg.norm(np.asarray(cloud_at) - cam.C) > 0.05 * maps.ground_distance(cam):
+            cloud = maps.cloud_around(cam, c)
+        final_render = display_render(cloud, cam, maps.gsd)
+        timings["overlay_render_s"] = time.perf_counter() - t5
+    else:
+        best = max([v["score"] for _, _, _, v in scored], default=0)
+        tried = [a["start"] for a in rec.get("direct_attempts", [])]
+        rec["reason"] = (f"no pose hypothesis verified: best score {best} (< {min_inl}); coarse: "
+                         f"{co.reason or 'ok'}; direct 2D-3D from {tried or 'no start'}, "
+                         f"render-match-PnP from {len(rstarts)} start(s)")  # fmt: skip
     if rec["status"] != "registered":
-        best_inl = max([a["inliers"] for a in rec.get("pnp_attempts", [])], default=0)
+        best_inl = max([a["inliers"] for a in rec.get("pnp_attempts", []) + rec.get("direct_attempts", [])],
+                       default=0)  # fmt: skip
         rec.update(camera_center_xyz=None, R_world_to_cam=None, inliers=int(best_inl),
                    reprojection_px=None)  # fmt: skip
     timings["total_s"] = time.perf_counter() - t0
     rec["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
-    log.info("frame %s: %s (%.1f s)", path, rec["status"], timings["total_s"])
+    log.info("frame %s: %s by %s (%.1f s)", path, rec["status"], rec.get("path"), timings["total_s"])
     return rec, (und, final_render)
 
 
@@ -255,15 +428,23 @@ def evaluate(rec: dict, truth: dict) -> dict:
 
 
 def localize_set(images: Any, camera: dict | None, index_dir, ortho_vrt, dsm_vrt, laz_paths,
-                 conf: dict, out_dir, truth_path: str | None = None) -> list[dict]:  # fmt: skip
-    """Rule ``localize_frames``: every frame of a set -> results/frames/{set}/."""
+                 conf: dict, out_dir, truth_path: str | None = None,
+                 ground_z: float = 0.0) -> list[dict]:  # fmt: skip
+    """Rule ``localize_frames``: every frame of a set -> results/frames/{set}/. ``dsm_vrt`` None:
+    the ground is the plane z = ``ground_z`` (recorded as ``ground`` in every pose)."""
     out = Path(out_dir)
+    paths = frame_images(images)
+    if not paths:
+        raise InputError(None, f"the frame list {images!r} matches no file", "check frames.<set>.images")
+    for p in paths:  # every frame readable and large enough before anything is written
+        check_frame(p)
     maps = MapSources(
         index_dir,
         ortho_vrt,
         dsm_vrt,
         laz_paths,
         dense_coarse=bool(conf.get("dense_coarse", DEFAULTS["dense_coarse"])),
+        ground_z=ground_z,
     )
     truth = {}
     if truth_path:
@@ -271,7 +452,7 @@ def localize_set(images: Any, camera: dict | None, index_dir, ortho_vrt, dsm_vrt
 
         truth = {Path(t["image"]).name: t for t in json.loads(Path(truth_path).read_text())}
     poses = []
-    for p in frame_images(images):
+    for p in paths:
         rec, (und, rend) = localize_frame(p, camera, maps, conf)
         if Path(p).name in truth:
             rec["evaluation"] = evaluate(rec, truth[Path(p).name])

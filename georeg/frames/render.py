@@ -230,7 +230,8 @@ def heightfield_cloud(
         ]
         sh = np.where(np.isfinite(sh), sh, np.inf)
         nb_min = np.minimum(nb_min, sh)
-    drop = np.where(valid & np.isfinite(nb_min), z - nb_min, 0.0)
+    with np.errstate(invalid="ignore"):  # -inf - inf off the valid pixels, dropped below
+        drop = np.where(valid & np.isfinite(nb_min), z - nb_min, 0.0)
     wr, wc = np.nonzero(drop > wall_min_m)
     if wr.size:
         n = np.ceil(drop[wr, wc] / wall_step_m).astype(int)
@@ -243,17 +244,22 @@ def heightfield_cloud(
     return PointCloud(pts, np.concatenate(col).astype(np.uint8), res)
 
 
-def read_heightfield(ortho_path, dsm_path, bounds, max_px: int = 4_000_000) -> PointCloud:
+def read_heightfield(ortho_path, dsm_path, bounds, max_px: int = 4_000_000,
+                     flat_z: float = 0.0) -> PointCloud:  # fmt: skip
     """Height-field cloud of a map window (x0, y0, x1, y1) from the ortho and DSM mosaics.
 
-    Decimated (out_shape) when the window would exceed ``max_px`` pixels.
+    Decimated (out_shape) when the window would exceed ``max_px`` pixels. Any ortho: 1 band
+    (panchromatic) is rendered gray, more than 8 bits is stretched (``to_uint8``). ``dsm_path``
+    None: flat ground at ``flat_z``.
     """
     import rasterio
     from affine import Affine
     from rasterio.enums import Resampling
     from rasterio.windows import from_bounds
 
-    with rasterio.open(ortho_path) as so, rasterio.open(dsm_path) as sd:
+    from georeg.index.features import to_uint8
+
+    with rasterio.open(ortho_path) as so:
         x0, y0, x1, y1 = bounds
         mb = so.bounds
         x0, y0 = max(x0, mb.left), max(y0, mb.bottom)
@@ -264,17 +270,27 @@ def read_heightfield(ortho_path, dsm_path, bounds, max_px: int = 4_000_000) -> P
         h, w = int(win.height), int(win.width)
         s = max(1.0, np.sqrt(h * w / max_px))
         shape = (max(1, int(h / s)), max(1, int(w / s)))
-        rgb = so.read([1, 2, 3], window=win, out_shape=(3, *shape), boundless=True, fill_value=0,
+        bands = [1, 2, 3] if so.count >= 3 else [1]
+        img = so.read(bands, window=win, out_shape=(len(bands), *shape), boundless=True, fill_value=0,
                       resampling=Resampling.average if s > 1 else Resampling.nearest)  # fmt: skip
         msk = so.read_masks(1, window=win, out_shape=shape, boundless=True) > 0
-        wd = from_bounds(*so.window_bounds(win), sd.transform)
-        dsm = sd.read(1, window=wd, out_shape=shape, boundless=True, fill_value=np.nan,
-                      resampling=Resampling.average if s > 1 else Resampling.bilinear,
-                      masked=True).astype(np.float32)  # fmt: skip
-        dsm = np.where(np.ma.getmaskarray(dsm) | ~msk, np.nan, np.ma.getdata(dsm))
+        wbounds = so.window_bounds(win)
         t0 = so.window_transform(win)
-        tr = Affine(t0.a * w / shape[1], 0, t0.c, 0, t0.e * h / shape[0], t0.f)
-    return heightfield_cloud(np.ascontiguousarray(rgb.transpose(1, 2, 0)), dsm, tr)
+    if img.dtype != np.uint8:
+        img = np.stack([to_uint8(b, msk) for b in img])
+    if len(bands) == 1:
+        img = np.repeat(img, 3, axis=0)
+    if dsm_path is None:
+        dsm = np.where(msk, np.float32(flat_z), np.nan).astype(np.float32)
+    else:
+        with rasterio.open(dsm_path) as sd:
+            wd = from_bounds(*wbounds, sd.transform)
+            dsm = sd.read(1, window=wd, out_shape=shape, boundless=True, fill_value=np.nan,
+                          resampling=Resampling.average if s > 1 else Resampling.bilinear,
+                          masked=True).astype(np.float32)  # fmt: skip
+        dsm = np.where(np.ma.getmaskarray(dsm) | ~msk, np.nan, np.ma.getdata(dsm))
+    tr = Affine(t0.a * w / shape[1], 0, t0.c, 0, t0.e * h / shape[0], t0.f)
+    return heightfield_cloud(np.ascontiguousarray(img.transpose(1, 2, 0)), dsm, tr)
 
 
 def read_laz_cloud(paths, bounds, spacing: float | None = None) -> PointCloud:

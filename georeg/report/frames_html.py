@@ -106,6 +106,11 @@ def _err_cells(prefix: str, e: Mapping[str, Any] | None) -> list[str]:
     return [cell(f"{prefix}_{k}", e.get(k)) for k in ERR_KEYS]
 
 
+def _path_cell(p: Mapping[str, Any]) -> str:
+    v = str(p.get("path") or "")
+    return f'<td data-key="path" data-value="{html.escape(v)}">{html.escape(v) or "-"}</td>'
+
+
 def frame_table(poses: list[dict[str, Any]], set_name: str) -> str:
     """One row per frame and a mean row over the frames evaluated (refined errors)."""
     rows = []
@@ -114,19 +119,21 @@ def frame_table(poses: list[dict[str, Any]], set_name: str) -> str:
         rows.append(
             [f'<td data-key="frame" data-value="{html.escape(name)}">{html.escape(name)}</td>',
              _status_cell(p), *_err_cells("pnp", _err(p, "pnp")),
-             *_err_cells("final", _err(p, "final")), cell("inliers", p.get("inliers")),
-             cell("reprojection_px", p.get("reprojection_px")),
+             *_err_cells("final", _err(p, "final")), _path_cell(p),
+             cell("verification_score", (p.get("verification") or {}).get("score"), 0),
+             cell("inliers", p.get("inliers")), cell("reprojection_px", p.get("reprojection_px")),
              cell("seconds", (p.get("timings_s") or {}).get("total_s"), 1)]
         )  # fmt: skip
     mp, mf = mean_errors(poses, "pnp"), mean_errors(poses, "final")
     n = (mf or mp or {}).get("n", 0)
     rows.append(
         [f'<th data-key="frame" data-value="mean">mean ({n} evaluated)</th>', "<td></td>",
-         *_err_cells("pnp", mp), *_err_cells("final", mf), "<td></td>", "<td></td>", "<td></td>"]
+         *_err_cells("pnp", mp), *_err_cells("final", mf), *["<td></td>"] * 5]
     )  # fmt: skip
     head = (
         '<thead><tr><th rowspan="2">frame</th><th rowspan="2">status (expected)</th>'
         '<th colspan="3">PnP only</th><th colspan="3">refined (final)</th>'
+        '<th rowspan="2">winning path</th><th rowspan="2">verification score</th>'
         '<th rowspan="2">inliers</th><th rowspan="2">reproj. (px)</th><th rowspan="2">s</th></tr>'
         "<tr>" + "<th>h (m)</th><th>v (m)</th><th>rot (deg)</th>" * 2 + "</tr></thead>"
     )
@@ -274,8 +281,10 @@ FRAMES_NOTE = (
     '<p class="note">Single-frame geo-localisation: status against the expected one '
     '(<span class="ok">green</span> = as expected, <span class="bad">red</span> = not), errors of '
     "the camera centre (horizontal h, vertical v) and of the rotation against the truth pose, "
-    "after render-match-PnP only and after the intensity refinement (final pose); inliers = "
-    "distinct frame keypoints of the final PnP; s = wall seconds per frame. Means over the frames "
+    "of the winning path's PnP pose and of the final pose; winning path = the hypothesis chosen "
+    "(direct 2D-3D matching, render-match-PnP, either + intensity refinement) by its verification "
+    "score = distinct frame keypoints whose guided match in the map reprojects within the "
+    "tolerance; inliers = distinct frame keypoints of the winning PnP; s = wall seconds per frame. Means over the frames "
     "with an evaluation. Overlays: the map rendered at the found pose on the frame. Sets of more "
     f"than {MAX_ROWS} entries (videos): statistics, the camera path and "
     f"{MAX_VIDEO_OVERLAYS} overlays.</p>"

@@ -291,6 +291,12 @@ def frame_set_truth(fset):
     return [t] if t else []
 
 
+def frame_dsm(wildcards):
+    """The DSM mosaic frames take their 3-D points from; none for a map without elevation (the
+    frames then use the flat ground map.ground_z)."""
+    return [] if map_elevation_source() == "none" else ["results/map/mosaic/dsm.vrt"]
+
+
 def frame_laz_inputs():
     """The tiles' textured points.laz when frames are rendered from points, else nothing."""
     if (config.get("frame_loc") or {}).get("render_source") == "points":

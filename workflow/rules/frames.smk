@@ -3,7 +3,7 @@
 # Params: the set's own entry and `frame_loc` (without demo_frames), so editing the demo views
 # reruns only the demo frames and what reads them.
 
-from georeg.frames.localize import frame_images
+from georeg.io.video import frame_images
 
 FRAME_LOC = {k: v for k, v in (config.get("frame_loc") or {}).items() if k != "demo_frames"}
 
@@ -13,7 +13,7 @@ rule localize_frames:
         images=lambda wc: frame_images(config["frames"][wc.fset].get("images")),
         index=f"{INDEX_DIR}/meta.json",
         ortho="results/map/mosaic/ortho.vrt",
-        dsm="results/map/mosaic/dsm.vrt",
+        dsm=frame_dsm,
         laz=lambda wc: (
             expand("results/map/tiles/{tile}/points.laz", tile=index_tile_ids())
             if FRAME_LOC.get("render_source") == "points"
@@ -30,6 +30,7 @@ rule localize_frames:
     params:
         frames=lambda wc: config["frames"][wc.fset],
         frame_loc=FRAME_LOC,
+        ground_z=config["map"].get("ground_z", 0.0),
     wildcard_constraints:
         fset="|".join(re.escape(s) for s in IMAGE_SETS) or "(?!)",
     log:

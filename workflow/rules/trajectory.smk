@@ -10,7 +10,7 @@ rule trajectory:
         video=lambda wc: frame_set_media(wc.vset),
         index=f"{INDEX_DIR}/meta.json",
         ortho="results/map/mosaic/ortho.vrt",
-        dsm="results/map/mosaic/dsm.vrt",
+        dsm=frame_dsm,
         laz=lambda wc: frame_laz_inputs(),
         truth=lambda wc: frame_set_truth(wc.vset),
     output:
@@ -26,6 +26,7 @@ rule trajectory:
         frames=lambda wc: config["frames"][wc.vset],
         frame_loc=FRAME_LOC,
         trajectory={k: v for k, v in config["trajectory"].items() if k != "demo_video"},
+        ground_z=config["map"].get("ground_z", 0.0),
     wildcard_constraints:
         vset="|".join(re.escape(s) for s in VIDEO_SETS) or "(?!)",
     log:
