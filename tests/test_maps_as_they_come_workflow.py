@@ -65,6 +65,12 @@ def _derive_inputs(work: Path) -> dict[str, str]:
     return {k: str(inp / f"{k}.tif") for k in ("pan16", "rgbn16", "swir2")}
 
 
+def _ground_height(work: Path) -> float:
+    """What a user without elevation data may know: the median ground height of the area."""
+    with rasterio.open(work / "results/demo/truth/dtm.tif") as ds:
+        return float(np.nanmedian(ds.read(1, masked=True).filled(np.nan)))
+
+
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory) -> dict[str, Path]:
     work = tmp_path_factory.mktemp("as_they_come")
@@ -74,6 +80,12 @@ def runs(tmp_path_factory) -> dict[str, Path]:
     base = yaml.safe_load(TEST_CONFIG.read_text())
     demo_q = base["queries"]["demo"]
     frame_view = {"name": "nadir_110", "off_nadir_deg": 0.0, "agl_m": 110.0, "heading_deg": 30.0}
+    pan_frames = {"demo": {
+        "images": ["results/demo/frames/nadir_110.png"],
+        "camera": {"fx": 700.0, "fy": 700.0, "cx": 403.2, "cy": 297.1,
+                   "dist": [-0.06, 0.015, 0.0005, -0.0003, 0.0]},
+        "truth": "results/demo/frames/truth.json",
+    }}  # fmt: skip
     configs = {
         "pan": base | {
             "map": {"orthophoto": inputs["pan16"], "lidar": [], "dem": "results/demo/truth/dsm.tif"},
@@ -82,17 +94,15 @@ def runs(tmp_path_factory) -> dict[str, Path]:
                 "swir2": {"image": inputs["swir2"], "gsd_m": 0.8,
                           "truth": "results/demo/queries/demo_truth.tif"},
             },
-            "frames": {"demo": {
-                "images": ["results/demo/frames/nadir_110.png"],
-                "camera": {"fx": 700.0, "fy": 700.0, "cx": 403.2, "cy": 297.1,
-                           "dist": [-0.06, 0.015, 0.0005, -0.0003, 0.0]},
-                "truth": "results/demo/frames/truth.json",
-            }},
+            "frames": pan_frames,
             "frame_loc": {"demo_frames": {"seed": 9, "views": [frame_view]}},
         },
         "rgbn": base | {
-            "map": {"orthophoto": inputs["rgbn16"], "lidar": [], "dem": None},
+            "map": {"orthophoto": inputs["rgbn16"], "lidar": [], "dem": None,
+                    "ground_z": _ground_height(work)},
             "queries": {"demo": demo_q},
+            "frames": pan_frames,
+            "frame_loc": {"demo_frames": {"seed": 9, "views": [frame_view]}},
         },
     }  # fmt: skip
     out = {}
@@ -165,3 +175,11 @@ def test_frame_on_the_panchromatic_map(runs):
     # colour frame, and a nadir view at 110 m trades tilt for position; the bound catches a wrong
     # place (the scene is 640 m wide), not the last metres
     assert poses[0]["evaluation"]["final"]["position_m"] < 12.0, poses[0]["evaluation"]
+
+
+def test_frame_on_a_map_without_elevation_uses_the_flat_ground(runs):
+    poses = json.loads((runs["rgbn"] / "results/frames/demo/poses.json").read_text())
+    p = poses[0]
+    assert "flat" in json.dumps(p.get("ground")), p.get("ground")
+    assert p["status"] == "registered", p.get("reason")
+    assert p["evaluation"]["final"]["position_m"] < 12.0, p["evaluation"]
