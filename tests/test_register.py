@@ -283,3 +283,35 @@ def test_enmap_swir_registers_onto_visible(enmap, swir):
     assert fused["status"] == "registered"
     err = error_px(np.array(fused["homography"]), Minv, tr, q)
     assert np.median(err) < 1.0 and np.percentile(err, 90) < 1.5
+
+
+def default_register_conf() -> dict:
+    """The workflow's default ``register`` section (config/config.yaml)."""
+    import yaml
+
+    return yaml.safe_load((REPO / "config" / "config.yaml").read_text())["register"]
+
+
+@pytest.mark.shared
+@pytest.mark.parametrize(("angle", "centre"), [(25.0, (257, 321)), (140.0, (176, 251))])
+def test_small_enmap_swir_query_registers_in_default_config(enmap, angle, centre):
+    """A 150 x 150 px EnMAP SWIR query (15 m, rotated) against the cube's own visible band."""
+    from georeg.register.fuse import register_query
+
+    cube, tr = enmap
+    vis, vm, _ = select_band(cube, "650nm")
+    v8, _ = stretch_uint8(vis, vm)
+    src = map_source(v8, vm, tr)
+    sw, sm, _ = select_band(cube, "2200nm")
+    s8, _ = stretch_uint8(sw, sm)
+    q, Minv = warp_query(s8, 2.0, angle)
+    c0, r0 = centre[0] - 75, centre[1] - 75
+    q = np.ascontiguousarray(q[r0 : r0 + 150, c0 : c0 + 150])
+    assert q.shape == (150, 150) and (q > 0).mean() > 0.5
+    Minv = Minv @ np.array([[1.0, 0, c0], [0, 1.0, r0], [0, 0, 1]])
+    conf = default_register_conf()
+    res = register_query(q, src, conf, 15.0, [15.0 / 30.0], seed=3)
+    assert res["status"] == "registered", res.get("reason")
+    assert res["split"]["parts"] == 1 and "whole query" in res["split"]["reason"]
+    err = error_px(np.array(res["homography"]), Minv, tr, q)
+    assert np.median(err) < 1.0 and np.percentile(err, 90) < 2.0

@@ -14,7 +14,15 @@ from typing import Any
 import numpy as np
 
 from georeg.register import matching
-from georeg.register.search import MapSource, QueryFeatures, verify
+from georeg.register.search import (
+    MapSource,
+    QueryFeatures,
+    query_features,
+    search_count,
+    search_one_part,
+    search_part,
+    verify,
+)
 
 log = logging.getLogger(__name__)
 
@@ -66,8 +74,9 @@ def fuse(
     out: dict[str, Any] = {"parts_accepted": [p["part"] for p in acc]}
     if not acc:
         reasons = "; ".join(
-            f"part {p['part']}: {p['candidates_tried']} candidate(s) tried, none accepted"
+            f"{_part_name(p)}: {p['candidates_tried']} candidate(s) tried, none accepted"
             for p in parts
+            if not p.get("skipped")
         )
         out.update(status="not_found", reason=reasons or "no part", homography=None)
         return out
@@ -129,6 +138,8 @@ def fuse(
         after = {}
         res_m = fit.residual_px * source.gsd_m
         for p in parts:
+            if p.get("skipped"):
+                continue
             r0, r1 = p["rows"]
             sel = inl & (m.q_xy[:, 1] >= r0) & (m.q_xy[:, 1] < r1)
             entry: dict[str, Any] = {
@@ -160,6 +171,59 @@ def fuse(
     return out
 
 
+def _part_name(p: dict[str, Any]) -> str:
+    return "whole query" if p.get("whole_query") else f"part {p['part']}"
+
+
+def whole_query_fallback(
+    full: QueryFeatures,
+    source: MapSource,
+    parts: list[dict[str, Any]],
+    conf: dict[str, Any],
+    gsd_m: float | None,
+    seed: int = 0,
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """When the query was split and every part failed, search the whole query as one more part.
+
+    Returns the parts (with the whole-query search appended when it ran) and the split record
+    for registration.json: the plan the parts followed and whether the whole query was searched.
+    """
+    plan = dict(next((p["split"] for p in parts if p.get("split")), None) or {})
+    skipped = [p["part"] for p in parts if p.get("skipped")]
+    if skipped:
+        plan["idle_part_jobs"] = skipped
+    if plan.get("parts", 1) == 1:
+        plan["whole_query_searched"] = "first, in part 0" if plan else "not recorded"
+        return parts, plan
+    if any(p.get("accepted") for p in parts) or not plan.get("whole_if_parts_fail", True):
+        plan["whole_query_searched"] = "no"
+        return parts, plan
+    log.info("every part failed: searching the whole query")
+    whole = search_part(full, source, conf, gsd_m, seed + 1000 * len(parts), search_count(plan))
+    whole.update(part=len(parts), whole_query=True)
+    plan["whole_query_searched"] = "after every part failed"
+    return [*parts, whole], plan
+
+
+def register_query(
+    u8: np.ndarray,
+    source: MapSource,
+    conf: dict[str, Any],
+    gsd_m: float | None,
+    factors: list[float],
+    seed: int = 0,
+) -> dict[str, Any]:
+    """The workflow's search_part jobs and fuse_parts in one process: split plan, every part,
+    the whole-query fallback, fusion. Returns the fused result with ``split`` and ``parts``."""
+    h = u8.shape[0]
+    full = query_features(u8, (0, h), factors, source.features_conf)
+    n = int(conf.get("parts", 2))
+    parts = [search_one_part(u8, k, source, conf, gsd_m, factors, seed, full) for k in range(n)]
+    parts, split = whole_query_fallback(full, source, parts, conf, gsd_m, seed)
+    fused = fuse(full, source, parts, conf, gsd_m, seed)
+    return {**fused, "split": split, "parts": parts}
+
+
 def run_fuse_parts(
     band_tif: str,
     band_json: str,
@@ -180,7 +244,7 @@ def run_fuse_parts(
     from georeg.io.atomic import write_json
     from georeg.register.band import feature_scales, read_query_band
     from georeg.register.geolocation import evaluate, write_geolocation
-    from georeg.register.search import gsd_in_map_units, load_source, query_features
+    from georeg.register.search import gsd_in_map_units, load_source
 
     t0 = time.perf_counter()
     meta = json.loads(Path(band_json).read_text())
@@ -195,18 +259,16 @@ def run_fuse_parts(
     }
     fused: dict[str, Any]
     t1 = time.perf_counter()
-    if any(p.get("accepted") for p in parts):
-        factors = feature_scales(gsd, source.gsd_m, reg_conf.get("unknown_gsd_factors", [1.0]))
-        full = query_features(u8, (0, h), factors, source.features_conf)
-        timings["fuse_features"] = time.perf_counter() - t1
-        t1 = time.perf_counter()
-        fused = fuse(full, source, parts, reg_conf, gsd, seed)
-        timings["fuse_match"] = time.perf_counter() - t1
-    else:
-        dummy = QueryFeatures(
-            np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros(0), w, h, (0, 0), [1.0]
-        )
-        fused = fuse(dummy, source, parts, reg_conf, gsd, seed)
+    factors = feature_scales(gsd, source.gsd_m, reg_conf.get("unknown_gsd_factors", [1.0]))
+    full = query_features(u8, (0, h), factors, source.features_conf)
+    timings["fuse_features"] = time.perf_counter() - t1
+    t1 = time.perf_counter()
+    parts, split = whole_query_fallback(full, source, parts, reg_conf, gsd, seed)
+    if split.get("whole_query_searched") == "after every part failed":
+        timings["whole_query_search"] = time.perf_counter() - t1
+    t1 = time.perf_counter()
+    fused = fuse(full, source, parts, reg_conf, gsd, seed)
+    timings["fuse_match"] = time.perf_counter() - t1
     H = None if fused.get("homography") is None else np.array(fused["homography"])
     t1 = time.perf_counter()
     geo = write_geolocation(out_geoloc, H, w, h, dsm, source.crs_wkt)
@@ -230,10 +292,13 @@ def run_fuse_parts(
         "map_px_m": map_px,
         "feature_gsd_m": source.gsd_m,
         "candidates_tried": int(sum(p.get("candidates_tried", 0) for p in parts)),
+        "split": split,
         "parts": [
             {
                 "part": p["part"],
                 "rows": p["rows"],
+                "whole_query": bool(p.get("whole_query") or p["rows"] == [0, h]),
+                "skipped": bool(p.get("skipped")),
                 "accepted": p["accepted"],
                 "candidates_tried": p["candidates_tried"],
                 "inliers": p["inliers"],
@@ -242,6 +307,7 @@ def run_fuse_parts(
                 "seconds": p.get("seconds"),
             }
             for p in parts
+            if not p.get("skipped")
         ],
         "fuse": {k: v for k, v in fused.items() if k not in ("homography", "status", "reason")},
         "geolocation": {"path": str(out_geoloc), **geo},
