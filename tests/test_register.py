@@ -12,7 +12,8 @@ from rasterio.transform import Affine
 
 from georeg.index.features import detect_and_describe, pixel_to_map
 from georeg.io.query import open_query
-from georeg.register import acceptance, matching
+from georeg.register import acceptance, matching, search
+from georeg.register import fuse as fuse_mod
 from georeg.register.band import select_band, stretch_uint8
 from georeg.register.fuse import fuse
 from georeg.register.geolocation import evaluate, map_xy, write_geolocation
@@ -148,6 +149,42 @@ def test_plausibility_handedness_scale_and_nfa():
     assert acceptance.log10_nfa(rand, 2000 * 2000)[0] > 0
     res6 = np.r_[np.full(6, 2.5), rand]
     assert acceptance.log10_nfa(res6, 2000 * 2000, n_tests_extra=10)[0] > 0
+
+
+def test_split_plan_keeps_paper_halves_for_large_queries_and_searches_small_ones_whole():
+    conf = reg_conf()
+    # the default demo query (829 x 1163 px at 0.8 m on a 1 m map; about 7300 features per
+    # feature Mpx, as measured on the tiny demo) keeps the paper's two halves
+    plan = search.split_plan(4500, 829, 1163, 0.8, 2, conf)
+    assert plan["parts"] == 2 and plan["searches"] == ["part 0", "part 1", "whole"]
+    # a 166 x 156 px Sentinel-2 query at 20 m on a 10 m map: too few features per half
+    plan = search.split_plan(900, 166, 156, 2.0, 2, conf)
+    assert plan["parts"] == 1 and "features per part" in plan["reason"]
+    assert plan["searches"] == ["whole", "part 0", "part 1"]
+    # enough features, but a part's footprint is too narrow on the map
+    plan = search.split_plan(5000, 1000, 200, 1.0, 2, conf)
+    assert plan["parts"] == 1 and "part side 100 map px" in plan["reason"]
+    assert search.split_plan(5000, 900, 900, 1.0, 1, conf)["searches"] == ["whole"]
+    off = reg_conf(split={"parts_if_whole_fails": False, "count_searches": False})
+    plan = search.split_plan(900, 166, 156, 2.0, 2, off)
+    assert plan["searches"] == ["whole"] and search.search_count(plan) == 1
+
+
+def test_small_query_searched_whole_then_fused_and_idle_part_recorded(synthetic_map):
+    img, tr, src = synthetic_map
+    q, Minv = warp_query(img[100:260, 120:300], 1.0, 30.0)
+    Minv = np.array([[1, 0, 120], [0, 1, 100], [0, 0, 1]]) @ Minv
+    conf = reg_conf()
+    factors = [1.0]
+    parts = [search.search_one_part(q, k, src, conf, None, factors, 5) for k in range(2)]
+    assert parts[0]["split"]["parts"] == 1 and parts[0]["accepted"]
+    assert parts[0]["rows"] == [0, q.shape[0]] and parts[1]["skipped"]
+    full = query_features(q, (0, q.shape[0]), factors, None)
+    parts, split = fuse_mod.whole_query_fallback(full, src, parts, conf, None, 5)
+    assert split["idle_part_jobs"] == [1] and split["whole_query_searched"] == "first, in part 0"
+    fused = fuse(full, src, parts, conf, None)
+    assert fused["status"] == "registered"
+    assert np.median(error_px(np.array(fused["homography"]), Minv, tr, q)) < 1.0
 
 
 def test_paper_centres_cover_the_map_without_replacement():

@@ -109,8 +109,8 @@ class QueryFeatures:
 
 
 SPLIT_DEFAULTS: dict[str, Any] = {
-    "min_part_features": 600,
-    "min_part_side_px": 200.0,
+    "min_part_features": 1000,
+    "min_part_side_px": 256.0,
     "whole_if_parts_fail": True,
     "parts_if_whole_fails": True,
     "count_searches": True,

@@ -1,0 +1,119 @@
+"""Area-based cross-spectral search: CFOG channels correlated by FFT over rotations.
+
+The query (brought to the map's feature GSD) and a map window are turned into oriented-gradient
+channels (georeg.register.refine.cfog, which do not depend on which band made them), both are
+shrunk so that the query is at most ``max_side`` pixels, and the query is correlated with the
+window by FFT at every rotation step. The peak is judged against the distribution of every other
+rotation and offset: a robust z-score (median / MAD of all scores) turned into an a-contrario
+number of false alarms with a Gaussian tail, counted over all rotations and offsets.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.stats import norm
+
+from georeg.register.refine import cfog
+
+
+@dataclass
+class DenseResult:
+    """Best rotation and offset: ``S`` maps query px (col, row) to map window px (col, row)."""
+
+    S: np.ndarray  # 3 x 3 similarity, query px -> map window px
+    angle_deg: float
+    score: float  # mean channel correlation per valid query pixel at the peak
+    z: float  # robust z-score of the peak among all rotations and offsets
+    log10_nfa: float  # log10(tests) + log10 P(Z > z)
+    second_ratio: float  # peak / best score at another rotation (> 20 deg away) or offset
+    tests: int
+
+
+def _shrink(img: np.ndarray, valid: np.ndarray, f: float) -> tuple[np.ndarray, np.ndarray]:
+    if abs(f - 1.0) < 1e-6:
+        return img.astype(np.float32), valid
+    size = (max(1, round(img.shape[1] * f)), max(1, round(img.shape[0] * f)))
+    interp = cv2.INTER_AREA if f < 1 else cv2.INTER_LINEAR
+    out = cv2.resize(img.astype(np.float32), size, interpolation=interp)
+    m = cv2.resize(valid.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+    return out, m
+
+
+def _scale(f: float) -> np.ndarray:
+    """Pixel-centre scaling by f as a 3 x 3 matrix: u' = (u + 0.5) f - 0.5."""
+    return np.array([[f, 0, 0.5 * f - 0.5], [0, f, 0.5 * f - 0.5], [0, 0, 1.0]])
+
+
+def dense_search(
+    q_u8: np.ndarray,
+    factor: float,
+    m_u8: np.ndarray,
+    step_deg: float = 10.0,
+    max_side: int = 96,
+    orientations: int = 9,
+    min_overlap: float = 0.9,
+) -> DenseResult | None:
+    """Find the query (uint8, 0 = nodata; ``factor`` = query GSD / map GSD) in the map window
+    ``m_u8`` (uint8, 0 = nodata) over rotations of ``step_deg``. None when nothing overlaps."""
+    qv0 = q_u8 > 0
+    q, qv = _shrink(q_u8, qv0, factor)
+    s = min(1.0, max_side / max(q.shape))
+    q, qv = _shrink(q, qv, s)
+    m, mv = _shrink(m_u8, m_u8 > 0, s)
+    if qv.sum() < 64 or mv.sum() < 64:
+        return None
+    M = cfog(m, mv, orientations)
+    h, w = q.shape
+    D = int(math.ceil(math.hypot(h, w))) + 2
+    P, Q = M.shape[1] + D, M.shape[2] + D
+    FM = np.fft.rfft2(M, s=(P, Q))
+    FMv = np.fft.rfft2(mv.astype(np.float32), s=(P, Q))
+    # offsets (dy, dx) with the canvas inside the padded map: the map window starts at 0
+    oy, ox = M.shape[1] - D + 1, M.shape[2] - D + 1
+    if oy < 1 or ox < 1:
+        return None
+    angles = np.arange(0.0, 360.0, step_deg)
+    scores = np.full((len(angles), oy, ox), -np.inf, np.float32)
+    mats = []
+    for k, a in enumerate(angles):
+        A = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), float(a), 1.0)
+        A[:, 2] += ((D - 1) / 2 - (w - 1) / 2, (D - 1) / 2 - (h - 1) / 2)
+        qr = cv2.warpAffine(q, A, (D, D), flags=cv2.INTER_LINEAR)
+        vr = cv2.warpAffine(qv.astype(np.uint8), A, (D, D), flags=cv2.INTER_NEAREST) > 0
+        C = cfog(qr, vr, orientations)
+        n = float(vr.sum())
+        C[:, vr] -= C[:, vr].mean(axis=1, keepdims=True)  # zero mean: chance offsets score ~0
+        FQ = np.fft.rfft2(C, s=(P, Q))
+        corr = np.fft.irfft2((FM * np.conj(FQ)).sum(0), s=(P, Q))[:oy, :ox]
+        cnt = np.fft.irfft2(FMv * np.conj(np.fft.rfft2(vr.astype(np.float32), s=(P, Q))), s=(P, Q))
+        ok = cnt[:oy, :ox] >= min_overlap * n
+        scores[k] = np.where(ok, corr / max(n, 1.0), -np.inf)
+        mats.append(np.vstack([A, [0, 0, 1]]))
+    fin = np.isfinite(scores)
+    if not fin.any():
+        return None
+    k, dy, dx = np.unravel_index(int(np.argmax(np.where(fin, scores, -np.inf))), scores.shape)
+    peak = float(scores[k, dy, dx])
+    vals = scores[fin].astype(np.float64)
+    med = float(np.median(vals))
+    mad = 1.4826 * float(np.median(np.abs(vals - med))) + 1e-12
+    z = (peak - med) / mad
+    # the best score elsewhere: other rotations (> 20 deg away) or offsets > 3 px away
+    dang = np.abs((angles - angles[k] + 180.0) % 360.0 - 180.0)
+    other = scores.copy()
+    near = dang <= 20.0
+    yy, xx = np.ogrid[:oy, :ox]
+    disc = (yy - dy) ** 2 + (xx - dx) ** 2 <= 9
+    other[near] = np.where(disc[None], -np.inf, other[near])
+    second = float(np.max(np.where(np.isfinite(other), other, -np.inf)))
+    tests = int(fin.sum())
+    log_nfa = math.log10(tests) + float(norm.logsf(z)) / math.log(10.0)
+    # query px -> shrunken query -> canvas -> shrunken map (+ offset) -> map window px
+    T = np.array([[1.0, 0, dx], [0, 1.0, dy], [0, 0, 1]])
+    S = np.linalg.inv(_scale(s)) @ T @ mats[k] @ _scale(s) @ _scale(factor)
+    return DenseResult(S, float(angles[k]), peak, float(z), log_nfa,
+                       peak / second if second > 0 else math.inf, tests)  # fmt: skip
