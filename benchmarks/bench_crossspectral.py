@@ -271,8 +271,8 @@ METHODS: dict[str, dict[str, Any]] = {
     # area-based: CFOG channels correlated by FFT over 10 deg rotations on the whole map, the
     # peak's similarity refined by a guided feature re-match, decided by the NFA (alone, and as
     # the fallback of the workflow when it finds nothing)
-    "dense": {"dense": {"step_deg": 10.0, "radius_px": 24.0}},
-    "wf_dense": {"pipeline": {}, "dense": {"step_deg": 10.0, "radius_px": 24.0}},
+    "dense": {"dense": {}},
+    "wf_dense": {"pipeline": {}, "dense": {}},
     # the paper: one band brought to the map's GSD, SIFT/RootSIFT, ratio 0.7, Nt = 100
     "paper": {},
     "paper_all_matches": {"max_matches": 0},
@@ -363,49 +363,30 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
 
 
 def run_dense(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict[str, Any]:
-    """Dense CFOG search over the whole map, then a guided feature re-match around its peak."""
-    from georeg.register import dense
+    """georeg.register.dense.dense_register with the whole map as the one window."""
+    from georeg.register.dense import dense_register
+    from georeg.register.search import MapSource, query_features
 
     t0 = time.perf_counter()
-    dc = spec["dense"]
+    conf = _deep(workflow_register_conf(), {"dense": spec["dense"]})
     fgsd = sc_map.map_gsd
     u8 = next(iter(q.bands.values()))
-    out: dict[str, Any] = {"matches": 0, "inliers": 0, "accepted": False, "H": None}
-    r = dense.dense_search(u8, q.gsd / fgsd, sc_map.map_gray, float(dc["step_deg"]))
-    if r is not None:
-        out.update(dense_z=r.z, dense_log10_nfa=r.log10_nfa, dense_ratio=r.second_ratio)
-        H0 = np.diag([fgsd, -fgsd, 1.0]) @ r.S
-        fconf = merged_conf(FEATURES)
-        mxy, mdesc, _, _ = map_features(sc_map, fgsd, fconf)
-        qxy, qd, qr, _, _ = query_feats(u8, q.gsd / fgsd, fconf)
-        qxy, qd, qr = crossspectral.add_polarity(qxy, qd, qr)
-        knn = matching.knn2(mdesc)
-        n = u8.shape[0]
-        ext = mxy.max(axis=0) - mxy.min(axis=0)
-        map_area = float(ext[0] * ext[1]) / fgsd**2
-        H, dec = H0, None
-        for radius_px in (float(dc["radius_px"]), 8.0):
-            disc = math.pi * radius_px**2
-            gm = crossspectral.guided_matches(qxy, qd, H, mxy, mdesc, radius_px * fgsd, 0.8, knn)
-            if len(gm) < 4:
-                break
-            fit = matching.fit_homography(gm.q_xy, gm.m_xy, fgsd, REG["ransac"], seed)
-            if fit.H is None:
-                break
-            # every rotation step and every disc-sized place of the map is a test
-            ntests = int(math.ceil(map_area / disc)) * int(round(360.0 / dc["step_deg"]))
-            d = acceptance.decide(
-                fit.H, fit.residual_px, fit.n_inliers, disc, n, n, q.gsd, REG["acceptance"],
-                n_candidates=max(ntests, 1), inlier_q_xy=gm.q_xy[fit.inliers],
-            )  # fmt: skip
-            if dec is not None and dec["accepted"] and fit.n_inliers <= out["inliers"]:
-                break
-            dec = d if dec is None or not dec["accepted"] else dec
-            H = fit.H
-            out.update(matches=len(gm), inliers=fit.n_inliers, H=fit.H,
-                       accepted=bool(dec["accepted"]), log10_nfa=dec.get("log10_nfa"))  # fmt: skip
-    out["seconds"] = time.perf_counter() - t0
-    return out
+    mxy, mdesc, _, _ = map_features(sc_map, fgsd, merged_conf(FEATURES))
+    src = MapSource(mxy, mdesc, fgsd)
+    qf = query_features(u8, (0, u8.shape[0]), [q.gsd / fgsd], None)
+    A = np.diag([fgsd, -fgsd, 1.0])
+    r = dense_register(u8, qf, q.gsd, sc_map.map_gray, A, src, conf, seed)
+    return {
+        "matches": r.get("matches") or 0,
+        "inliers": r.get("inliers") or 0,
+        "accepted": bool(r["accepted"]),
+        "log10_nfa": r.get("log10_nfa"),
+        "H": None if r.get("homography") is None else np.array(r["homography"]),
+        "dense_z": r.get("dense_z"),
+        "dense_log10_nfa": r.get("dense_log10_nfa"),
+        "dense_ratio": r.get("dense_peak_ratio"),
+        "seconds": time.perf_counter() - t0,
+    }
 
 
 def run_method(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict[str, Any]:

@@ -352,3 +352,37 @@ def test_small_enmap_swir_query_registers_in_default_config(enmap, angle, centre
     assert res["split"]["parts"] == 1 and "whole query" in res["split"]["reason"]
     err = error_px(np.array(res["homography"]), Minv, tr, q)
     assert np.median(err) < 1.0 and np.percentile(err, 90) < 2.0
+
+
+@pytest.mark.shared
+def test_dense_search_registers_real_swir_and_rejects_an_unrelated_map(enmap):
+    """CFOG correlation over rotations + guided re-match: the EnMAP 2200 nm query found in the
+    650 nm band with no feature search at all; the same query in a random texture is refused."""
+    from georeg.register.dense import dense_register, dense_search, window_u8
+
+    cube, tr = enmap
+    vis, vm, _ = select_band(cube, "650nm")
+    v8, _ = stretch_uint8(vis, vm)
+    src = map_source(v8, vm, tr)
+    sw, sm, _ = select_band(cube, "2200nm")
+    s8, _ = stretch_uint8(sw, sm)
+    q, Minv = warp_query(s8, 2.0, 140.0)
+    c0, r0 = 176 - 75, 251 - 75
+    q = np.ascontiguousarray(q[r0 : r0 + 150, c0 : c0 + 150])
+    Minv = Minv @ np.array([[1.0, 0, c0], [0, 1.0, r0], [0, 0, 1]])
+    r = dense_search(q, 0.5, v8, 10.0)
+    assert r is not None and abs(((r.angle_deg - 140.0) + 180) % 360 - 180) <= 10.0
+    assert r.log10_nfa < -3
+    conf = default_register_conf()
+    qf = query_features(q, (0, 150), [0.5], FEAT)
+    A = np.array([[tr.a, tr.b, tr.c], [tr.d, tr.e, tr.f], [0, 0, 1.0]]) @ np.array(
+        [[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1.0]]
+    )
+    rec = dense_register(q, qf, 15.0, window_u8(np.where(vm, vis, np.nan)), A, src, conf, 1)
+    assert rec["accepted"], rec
+    err = error_px(np.array(rec["homography"]), Minv, tr, q)
+    assert np.median(err) < 1.0 and np.percentile(err, 90) < 2.0
+    other = texture(v8.shape, seed=5)
+    osrc = map_source(other, np.ones(other.shape, bool), tr)
+    bad = dense_register(q, qf, 15.0, other, A, osrc, conf, 1)
+    assert not bad["accepted"]

@@ -626,7 +626,8 @@ def search_one_part(
         summary = [{"rows": r["rows"], "accepted": r["accepted"], "inliers": r["inliers"],
                     "candidates_tried": r["candidates_tried"]} for r in tried]  # fmt: skip
         res["candidates_tried"] = int(sum(r["candidates_tried"] for r in tried))
-        return {"part": part, "split": plan, **res, "searched": summary}
+        res["candidates"] = [c for r in tried for c in r["candidates"]]  # the whole query's first
+        return {"part": part, "split": plan, **res, "searched": summary, "whole_query": True}
     if plan["parts"] == 1 and part > 0:
         return {
             "part": part, "split": plan, "skipped": True, "rows": [0, 0], "width": w,
