@@ -268,11 +268,14 @@ METHODS: dict[str, dict[str, Any]] = {
     "wf_adaptive_only": {"pipeline": {"split": {"parts_if_whole_fails": False}}},
     # the default: as above, and the parts of a small query when the whole query fails
     "wf_adaptive": {"pipeline": {}},
+    # both SWIR bands' features pooled (the query stage of the workflow writes one band)
+    "wf_adaptive_2bands": {"pipeline": {}, "bands": 2},
     # area-based: CFOG channels correlated by FFT over 10 deg rotations on the whole map, the
     # peak's similarity refined by a guided feature re-match, decided by the NFA (alone, and as
     # the fallback of the workflow when it finds nothing)
     "dense": {"dense": {}},
     "wf_dense": {"pipeline": {}, "dense": {}},
+    "wf_dense_2bands": {"pipeline": {}, "dense": {}, "bands": 2},
     # the paper: one band brought to the map's GSD, SIFT/RootSIFT, ratio 0.7, Nt = 100
     "paper": {},
     "paper_all_matches": {"max_matches": 0},
@@ -345,7 +348,8 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
     fgsd = sc_map.map_gsd
     mxy, mdesc, mang, msize = map_features(sc_map, fgsd, merged_conf(FEATURES))
     src = MapSource(mxy, mdesc, fgsd, angle=mang, scale=msize * fgsd)
-    u8 = next(iter(q.bands.values()))
+    nb = int(spec.get("bands", 1))
+    u8 = np.stack(list(q.bands.values())[:nb]) if nb > 1 else next(iter(q.bands.values()))
     res = register_query(u8, src, conf, q.gsd, [q.gsd / fgsd], seed)
     split = res.get("split") or {}
     return {
@@ -370,10 +374,11 @@ def run_dense(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict[
     t0 = time.perf_counter()
     conf = _deep(workflow_register_conf(), {"dense": spec["dense"]})
     fgsd = sc_map.map_gsd
-    u8 = next(iter(q.bands.values()))
+    nb = int(spec.get("bands", 1))
+    u8 = np.stack(list(q.bands.values())[:nb]) if nb > 1 else next(iter(q.bands.values()))
     mxy, mdesc, _, _ = map_features(sc_map, fgsd, merged_conf(FEATURES))
     src = MapSource(mxy, mdesc, fgsd)
-    qf = query_features(u8, (0, u8.shape[0]), [q.gsd / fgsd], None)
+    qf = query_features(u8, (0, u8.shape[-2]), [q.gsd / fgsd], None)
     A = np.diag([fgsd, -fgsd, 1.0])
     r = dense_register(u8, qf, q.gsd, sc_map.map_gray, A, src, conf, seed)
     return {

@@ -168,7 +168,7 @@ def dense_register(
     """Dense search of the query in one map window, then a guided feature re-match around the
     peak (radius ``radius_px`` feature px, then 8), fitted and decided like any candidate.
 
-    ``win``: the window (uint8, 0 = nodata); ``win_to_map``: 3 x 3, window pixel centre
+    ``q_u8``: the query band (or bands, the first used); ``win``: the window (uint8, 0 = nodata); ``win_to_map``: 3 x 3, window pixel centre
     (col, row) -> map (x, y); ``q_gsd``: query GSD in map units. The NFA counts every rotation
     step and every disc-sized place of the ``n_windows`` windows searched.
     """
@@ -176,7 +176,8 @@ def dense_register(
     dc = dense_conf(conf)
     win_px = float(np.sqrt(abs(np.linalg.det(win_to_map[:2, :2]))))
     rec: dict[str, Any] = {"method": "dense", "accepted": False, "homography": None, "inliers": 0}
-    r = dense_search(q_u8, q_gsd / win_px, win, float(dc["step_deg"]), int(dc["max_side"]))
+    q0 = q_u8 if q_u8.ndim == 2 else q_u8[0]  # several bands: the first
+    r = dense_search(q0, q_gsd / win_px, win, float(dc["step_deg"]), int(dc["max_side"]))
     if r is None:
         rec.update(reason="no overlap", seconds=time.perf_counter() - t0)
         return rec

@@ -288,7 +288,7 @@ def register_query(
     """The workflow's search_part jobs and fuse_parts in one process: split plan, every part,
     the whole-query fallback, the dense fallback (when ``read_window`` is given, see
     ``dense_fallback``), fusion. Returns the fused result with ``split`` and ``parts``."""
-    h = u8.shape[0]
+    h = u8.shape[-2]
     full = query_features(u8, (0, h), factors, source.features_conf)
     n = int(conf.get("parts", 2))
     parts = [search_one_part(u8, k, source, conf, gsd_m, factors, seed, full) for k in range(n)]

@@ -180,15 +180,17 @@ def query_features(
 ) -> QueryFeatures:
     """Detect features on rows ``rows`` of the band at each resize factor; pool them.
 
-    ``band_u8``: stretched band, 0 = nodata. A factor brings the query to the map's feature GSD
-    (query_gsd / feature_gsd); keypoints are mapped back to original query pixels.
+    ``band_u8``: stretched band (rows, cols), 0 = nodata, or several co-registered bands
+    (bands, rows, cols) whose features are pooled. A factor brings the query to the map's
+    feature GSD (query_gsd / feature_gsd); keypoints are mapped back to original query pixels.
     """
     r0, r1 = rows
-    img = np.ascontiguousarray(band_u8[r0:r1])
-    mask = img > 0
+    stack = band_u8 if band_u8.ndim == 3 else band_u8[None]
+    img = np.ascontiguousarray(stack[0, r0:r1])
     xs, ds, rs, angs, sizes = [], [], [], [], []
-    for f in factors:
-        im, m, (sx, sy) = resample(img, float(f), mask)
+    for f, b in ((f, b) for b in range(len(stack)) for f in factors):
+        one = np.ascontiguousarray(stack[b, r0:r1])
+        im, m, (sx, sy) = resample(one, float(f), one > 0)
         feats = detect_and_describe(im, m, features_conf or {})
         if len(feats) == 0:
             continue
@@ -605,7 +607,7 @@ def search_one_part(
     """Part ``part`` of the split plan: its own rows when the query is split; when it is not,
     part 0 searches the whole query and the other parts record that they were merged into it.
     ``full``: the whole query's features when already computed."""
-    h, w = u8.shape
+    h, w = u8.shape[-2:]
     if full is None:
         full = query_features(u8, (0, h), factors, source.features_conf)
     plan = split_plan(len(full), w, h, max(factors), int(reg_conf.get("parts", 2)), reg_conf)
