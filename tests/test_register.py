@@ -187,6 +187,15 @@ def test_small_query_searched_whole_then_fused_and_idle_part_recorded(synthetic_
     assert np.median(error_px(np.array(fused["homography"]), Minv, tr, q)) < 1.0
 
 
+def test_query_features_pool_a_band_stack():
+    a, b = texture((120, 140), seed=1), texture((120, 140), seed=2)
+    fa = query_features(a, (10, 90), [1.0], FEAT)
+    fb = query_features(b, (10, 90), [1.0], FEAT)
+    fab = query_features(np.stack([a, b]), (10, 90), [1.0], FEAT)
+    assert len(fab) == len(fa) + len(fb) and (fab.width, fab.height) == (140, 80)
+    assert np.allclose(fab.xy[: len(fa)], fa.xy) and fab.xy[:, 1].min() >= 10
+
+
 def test_paper_centres_cover_the_map_without_replacement():
     c = paper_centres((0, 0, 1000, 800), 400, seed=5)
     assert len(np.unique(c, axis=0)) == len(c) >= 5 * 4
