@@ -47,6 +47,12 @@ def _shrink(img: np.ndarray, valid: np.ndarray, f: float) -> tuple[np.ndarray, n
     return out, m
 
 
+def _inner(valid: np.ndarray, margin: int = 4) -> np.ndarray:
+    """``valid`` eroded by ``margin`` px: where the channels owe nothing to a nodata border."""
+    k = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
+    return cv2.erode(valid.astype(np.uint8), k, borderValue=0) > 0
+
+
 def _scale(f: float) -> np.ndarray:
     """Pixel-centre scaling by f as a 3 x 3 matrix: u' = (u + 0.5) f - 0.5."""
     return np.array([[f, 0, 0.5 * f - 0.5], [0, f, 0.5 * f - 0.5], [0, 0, 1.0]])
@@ -77,6 +83,7 @@ def dense_search(
     m = np.pad(m, pd)
     mv = np.pad(mv, pd)
     M = cfog(m, mv, orientations)
+    M[:, ~_inner(mv)] = 0.0  # no nodata-border gradients: they would align with the query's
     P, Q = M.shape[1] + D, M.shape[2] + D
     FM = np.fft.rfft2(M, s=(P, Q))
     FMv = np.fft.rfft2(mv.astype(np.float32), s=(P, Q))
@@ -93,6 +100,8 @@ def dense_search(
         qr = cv2.warpAffine(q, A, (D, D), flags=cv2.INTER_LINEAR)
         vr = cv2.warpAffine(qv.astype(np.uint8), A, (D, D), flags=cv2.INTER_NEAREST) > 0
         C = cfog(qr, vr, orientations)
+        vr = _inner(vr)
+        C[:, ~vr] = 0.0
         n = float(vr.sum())
         C[:, vr] -= C[:, vr].mean(axis=1, keepdims=True)  # zero mean: chance offsets score ~0
         FQ = np.fft.rfft2(C, s=(P, Q))
