@@ -1,22 +1,27 @@
-"""Cross-spectral, cross-date matching benchmark (issue 11): SWIR of date 1 vs RGB of date 2.
+"""Cross-spectral, cross-date matching benchmark: SWIR of one date vs RGB of another.
 
-    source /work/venv/bin/activate
-    nice -n 10 python benchmarks/bench_crossspectral.py            # all candidates, a few minutes
-    nice -n 10 python benchmarks/bench_crossspectral.py --methods paper,cross --per-scene 2
+    . /work/main/.venv/bin/activate
+    nice -n 5 python benchmarks/bench_crossspectral.py -v       # the protocol's default methods
+    nice -n 5 python benchmarks/bench_crossspectral.py --methods wf_adaptive --half checking
 
-Development set, built the way a user meets it (seeded): from every scene of
-../shared/data/swir_dates (Landsat Nanjing + Taizhou, five Sentinel-2 cities) a SWIR band of one
-date (1.6 or 2.2 um, chosen at random) is rotated (any angle), rescaled (x0.75-1.3, the query GSD
-given accordingly), cropped to half the scene's side and stripped of its geo-referencing; the map
-is the RGB luminance of the other date (Landsat: either direction; Sentinel-2: date 2). The truth
-comes from the geo-referencing of both dates. Unrelated pairs (a query of one scene against the
-map of another) must come out not found. Each candidate matches the query against the whole map
-(one candidate region; the search strategy is not what is measured here) and decides with the
-project's acceptance (georeg.register.acceptance: NFA + plausibility + collinearity).
+Protocol (docs/BENCHMARKS.md "Cross-spectral matching"): the scenes of ../shared/data are split
+by city into a tuning half (nanjing, abudhabi, saclay) and a checking half (taizhou, hongkong,
+norcia, potsdam); a change is kept only if it helps the checking half. Scenes: Landsat Nanjing
+and Taizhou in both date directions, the five Sentinel-2 cities in both date directions, EnMAP
+Potsdam (SWIR vs its own visible bands). Per scene, seeded: crops of half the scene side and
+smaller ones, rotated by any angle, rescaled x0.75-1.3 (Potsdam: 150 px at 12-20 m), a random
+SWIR band, stripped of geo-referencing; the map is the RGB luminance of the other date. Truth
+from both dates' geo-referencing. Unrelated pairs (each query against the map of another city of
+its half) must come out not found.
 
-Outcome per query: success = accepted with median error <= 5 map pixels over the query; false
-accept = accepted with a larger error, or any acceptance of an unrelated pair; missed = not
-accepted. Output: a table on stdout and results/benchmark/crossspectral.json.
+Methods: single-region matchers on the whole map (``sift_plain``, ``paper``, ``vote_*``), the
+workflow's registration stages on plain map arrays (``wf_*``: georeg.register.fuse.register_query
+with config/config.yaml's ``register`` section), the dense CFOG search (``dense``) and both.
+Outcome per query: success = accepted with median error <= 5 map pixels; false accept = accepted
+with a larger error, or any acceptance of an unrelated pair; missed = not accepted. Per half:
+registered, false accepts, unrelated accepted, median error, median p90 error over the footprint,
+registered queries with p90 <= 2 px, seconds per query. Output: a table on stdout and
+results/benchmark/crossspectral.json (or ``--out``).
 """
 
 from __future__ import annotations
