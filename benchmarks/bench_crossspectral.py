@@ -275,9 +275,10 @@ METHODS: dict[str, dict[str, Any]] = {
     "wf_adaptive": {"pipeline": {}},
     # both SWIR bands' features pooled (the query stage of the workflow writes one band)
     "wf_adaptive_2bands": {"pipeline": {}, "bands": 2},
-    # area-based: CFOG channels correlated by FFT over 10 deg rotations on the whole map, the
-    # peak's similarity refined by a guided feature re-match, decided by the NFA (alone, and as
-    # the fallback of the workflow when it finds nothing)
+    # area-based (georeg.register.dense, config register.dense; off in the workflow by default):
+    # CFOG channels correlated by FFT over 10 deg rotations on the whole map, the peak's
+    # similarity refined by a guided feature re-match, decided by the NFA (alone, and as the
+    # fallback of the workflow's stages when they find nothing)
     "dense": {"dense": {}},
     "wf_dense": {"pipeline": {}, "dense": {}},
     "wf_dense_2bands": {"pipeline": {}, "dense": {}, "bands": 2},

@@ -137,7 +137,7 @@ def dense_search(
 
 
 DENSE_DEFAULTS: dict[str, Any] = {
-    "enabled": True,
+    "enabled": False,
     "step_deg": 10.0,
     "max_side": 96,
     "radius_px": 24.0,
