@@ -1,22 +1,27 @@
-"""Cross-spectral, cross-date matching benchmark (issue 11): SWIR of date 1 vs RGB of date 2.
+"""Cross-spectral, cross-date matching benchmark: SWIR of one date vs RGB of another.
 
-    source /work/venv/bin/activate
-    nice -n 10 python benchmarks/bench_crossspectral.py            # all candidates, a few minutes
-    nice -n 10 python benchmarks/bench_crossspectral.py --methods paper,cross --per-scene 2
+    . /work/main/.venv/bin/activate
+    nice -n 5 python benchmarks/bench_crossspectral.py -v       # the protocol's default methods
+    nice -n 5 python benchmarks/bench_crossspectral.py --methods wf_adaptive --half checking
 
-Development set, built the way a user meets it (seeded): from every scene of
-../shared/data/swir_dates (Landsat Nanjing + Taizhou, five Sentinel-2 cities) a SWIR band of one
-date (1.6 or 2.2 um, chosen at random) is rotated (any angle), rescaled (x0.75-1.3, the query GSD
-given accordingly), cropped to half the scene's side and stripped of its geo-referencing; the map
-is the RGB luminance of the other date (Landsat: either direction; Sentinel-2: date 2). The truth
-comes from the geo-referencing of both dates. Unrelated pairs (a query of one scene against the
-map of another) must come out not found. Each candidate matches the query against the whole map
-(one candidate region; the search strategy is not what is measured here) and decides with the
-project's acceptance (georeg.register.acceptance: NFA + plausibility + collinearity).
+Protocol (docs/BENCHMARKS.md "Cross-spectral matching"): the scenes of ../shared/data are split
+by city into a tuning half (nanjing, abudhabi, saclay) and a checking half (taizhou, hongkong,
+norcia, potsdam); a change is kept only if it helps the checking half. Scenes: Landsat Nanjing
+and Taizhou in both date directions, the five Sentinel-2 cities in both date directions, EnMAP
+Potsdam (SWIR vs its own visible bands). Per scene, seeded: crops of half the scene side and
+smaller ones, rotated by any angle, rescaled x0.75-1.3 (Potsdam: 150 px at 12-20 m), a random
+SWIR band, stripped of geo-referencing; the map is the RGB luminance of the other date. Truth
+from both dates' geo-referencing. Unrelated pairs (each query against the map of another city of
+its half) must come out not found.
 
-Outcome per query: success = accepted with median error <= 5 map pixels over the query; false
-accept = accepted with a larger error, or any acceptance of an unrelated pair; missed = not
-accepted. Output: a table on stdout and results/benchmark/crossspectral.json.
+Methods: single-region matchers on the whole map (``sift_plain``, ``paper``, ``vote_*``), the
+workflow's registration stages on plain map arrays (``wf_*``: georeg.register.fuse.register_query
+with config/config.yaml's ``register`` section), the dense CFOG search (``dense``) and both.
+Outcome per query: success = accepted with median error <= 5 map pixels; false accept = accepted
+with a larger error, or any acceptance of an unrelated pair; missed = not accepted. Per half:
+registered, false accepts, unrelated accepted, median error, median p90 error over the footprint,
+registered queries with p90 <= 2 px, seconds per query. Output: a table on stdout and
+results/benchmark/crossspectral.json (or ``--out``).
 """
 
 from __future__ import annotations
@@ -60,6 +65,19 @@ class Scene:
     map_gray: np.ndarray  # uint8, 0 = nodata
     map_gsd: float
     to_map: Any  # (n,2) src px -> (n,2) map px
+    city: str = ""
+    scale_range: tuple[float, float] = (0.75, 1.3)  # query px per source px
+    query_px: int | None = None  # fixed query side (px); None = a fraction of the scene side
+
+
+# The protocol's fixed split by city (never tune on CHECKING): a change is kept only if it helps
+# the checking half too. Saclay east and west are one city.
+TUNING = ("nanjing", "abudhabi", "saclay")
+CHECKING = ("taizhou", "hongkong", "norcia", "potsdam")
+
+
+def half_of(city: str) -> str:
+    return "tuning" if city in TUNING else "checking"
 
 
 def _stretch(a: np.ndarray, valid: np.ndarray | None = None, lo=1.0, hi=99.0) -> np.ndarray:
@@ -82,10 +100,28 @@ def landsat_scene(city: str, query_date: int) -> Scene:
     q, m = open_query(str(cubes[query_date])), open_query(str(cubes[1 - query_date]))
     swir = {"1.6um": q.read_band(4), "2.2um": q.read_band(5)}
     gray = _lum(m.read_band(2), m.read_band(1), m.read_band(0))
-    return Scene(f"{city}_d{query_date + 1}", swir, 30.0, gray, 30.0, lambda p: p)
+    return Scene(f"{city}_d{query_date + 1}", swir, 30.0, gray, 30.0, lambda p: p, city)
 
 
-def s2_scene(city: str) -> Scene:
+def enmap_scene() -> Scene:
+    """EnMAP Potsdam: SWIR bands vs the visible luminance of the same acquisition (30 m); the
+    queries are warped to 12-20 m and cropped to 150 x 150 px."""
+    from georeg.io.query import open_query
+    from georeg.register.band import select_band
+
+    cube = open_query(str(SHARED / "enmap_potsdam" / "enmap_potsdam_mosaic_subset.tif"))
+
+    def band(spec: str) -> np.ndarray:
+        b, m, _ = select_band(cube, spec)
+        return np.where(m, b, np.nan).astype(np.float32)
+
+    r, g, b = band("650nm"), band("560nm"), band("480nm")
+    swir = {"1650nm": band("1650nm"), "2200nm": band("2200nm")}
+    return Scene("enmap_potsdam", swir, 30.0, _lum(r, g, b), 30.0, lambda p: p, "potsdam",
+                 (1.5, 2.5), 150)  # fmt: skip
+
+
+def s2_scene(city: str, reverse: bool = False) -> Scene:
     import rasterio
 
     d = DATES / "oscd_dev" / city
@@ -97,11 +133,12 @@ def s2_scene(city: str) -> Scene:
             with rasterio.open(p) as s:
                 return s.read(1).astype(np.float32), s.transform
 
-    b11, t1 = band(1, "B11")
-    b12, _ = band(1, "B12")
-    r, t2 = band(2, "B04")
-    g, _ = band(2, "B03")
-    b, _ = band(2, "B02")
+    qd, md = (2, 1) if reverse else (1, 2)
+    b11, t1 = band(qd, "B11")
+    b12, _ = band(qd, "B12")
+    r, t2 = band(md, "B04")
+    g, _ = band(md, "B03")
+    b, _ = band(md, "B02")
     inv2 = ~t2
 
     def to_map(p: np.ndarray) -> np.ndarray:
@@ -109,12 +146,18 @@ def s2_scene(city: str) -> Scene:
         c, rr = inv2 * (lon, lat)
         return np.c_[c - 0.5, rr - 0.5]
 
-    return Scene(f"s2_{city}", {"1.6um": b11, "2.2um": b12}, 20.0, _lum(r, g, b), 10.0, to_map)
+    name = f"s2_{city}" + ("_rev" if reverse else "")
+    swir = {"1.6um": b11, "2.2um": b12}
+    return Scene(name, swir, 20.0, _lum(r, g, b), 10.0, to_map, city.split("_")[0])
 
 
-def all_scenes() -> list[Scene]:
+def all_scenes(enmap: bool = True) -> list[Scene]:
+    """Landsat both directions, Sentinel-2 both directions, EnMAP (when present)."""
     out = [landsat_scene(c, k) for c in ("nanjing", "taizhou") for k in (0, 1)]
-    out += [s2_scene(c) for c in sorted(p.name for p in (DATES / "oscd_dev").iterdir())]
+    for c in sorted(p.name for p in (DATES / "oscd_dev").iterdir()):
+        out += [s2_scene(c), s2_scene(c, reverse=True)]
+    if enmap and (SHARED / "enmap_potsdam").is_dir():
+        out.append(enmap_scene())
     return out
 
 
@@ -132,14 +175,23 @@ class Query:
     truth_map: np.ndarray | None  # (k,2) map px of those points
 
 
-def make_query(sc: Scene, rng: np.random.Generator, i: int) -> Query:
-    """Rotate, rescale and crop a SWIR band of ``sc`` (seeded); truth on a grid of query pixels."""
-    h, w = next(iter(sc.swir.values())).shape
-    side = 0.5 * min(h, w)
-    s = float(rng.uniform(0.75, 1.3))
+def make_query(sc: Scene, rng: np.random.Generator, i: int, frac: float = 0.5) -> Query:
+    """Rotate, rescale and crop a SWIR band of ``sc`` (seeded); truth on a grid of query pixels.
+
+    Side: ``frac`` of the scene's smaller side (``sc.query_px`` query px when set); the centre is
+    drawn again until at least half of the crop is valid."""
+    first_band = next(iter(sc.swir.values()))
+    h, w = first_band.shape
+    s = float(rng.uniform(*sc.scale_range))
+    side = sc.query_px / s if sc.query_px else frac * min(h, w)
     theta = float(rng.uniform(0, 360))
     half = side / math.sqrt(2)
-    cx, cy = rng.uniform(half, w - half), rng.uniform(half, h - half)
+    ok = np.isfinite(first_band) & (first_band > 0)
+    for _ in range(100):
+        cx, cy = rng.uniform(half, w - half), rng.uniform(half, h - half)
+        r0, c0 = int(cy - side / 2), int(cx - side / 2)
+        if ok[r0 : r0 + int(side), c0 : c0 + int(side)].mean() >= 0.5:
+            break
     n = int(round(side * s))
     # query px (u, v) -> src px: centre + R(theta) (u - n/2, v - n/2) / s
     c, si = math.cos(math.radians(theta)), math.sin(math.radians(theta))
@@ -158,6 +210,7 @@ def make_query(sc: Scene, rng: np.random.Generator, i: int) -> Query:
         bands[b] = _stretch(warped)
     uu, vv = np.meshgrid(np.linspace(2, n - 3, 12), np.linspace(2, n - 3, 12))
     qp = np.c_[uu.ravel(), vv.ravel()]
+    qp = qp[bands[first][qp[:, 1].astype(int), qp[:, 0].astype(int)] > 0]
     sp = qp @ A.T + t
     return Query(
         f"{sc.name}_{i}_{first}", sc.name, sc.name, bands, sc.swir_gsd / s, qp, sc.to_map(sp)
@@ -204,7 +257,31 @@ def query_feats(band: np.ndarray, factor: float, conf: dict):
     )
 
 
+_FORCE_SPLIT = {"min_part_features": 0, "min_part_side_px": 0, "whole_if_parts_fail": False}
+
 METHODS: dict[str, dict[str, Any]] = {
+    # the issue's outside baseline: plain OpenCV SIFT, ratio 0.8, all matches, MAGSAC, > 5 inliers
+    "sift_plain": {"ratio": 0.8, "max_matches": 0, "acceptance": {"mode": "paper"}},
+    # the workflow (config/config.yaml register section) on plain map arrays: split plan, the
+    # search_part jobs (index strategy: 1-NN cell votes, top 8 candidates), whole-query
+    # fallback, fusion; "register" overrides the config
+    # the paper's halves, always, each part's NFA counting its own candidates only (the
+    # behaviour before the split plan)
+    "wf_halves": {"pipeline": {"split": {**_FORCE_SPLIT, "count_searches": False}}},
+    "wf_whole": {"pipeline": {"parts": 1}},  # never split
+    # split only large queries; the whole query when every part fails
+    "wf_adaptive_only": {"pipeline": {"split": {"parts_if_whole_fails": False}}},
+    # the default: as above, and the parts of a small query when the whole query fails
+    "wf_adaptive": {"pipeline": {}},
+    # both SWIR bands' features pooled (the query stage of the workflow writes one band)
+    "wf_adaptive_2bands": {"pipeline": {}, "bands": 2},
+    # area-based (georeg.register.dense, config register.dense; off in the workflow by default):
+    # CFOG channels correlated by FFT over 10 deg rotations on the whole map, the peak's
+    # similarity refined by a guided feature re-match, decided by the NFA (alone, and as the
+    # fallback of the workflow's stages when they find nothing)
+    "dense": {"dense": {}},
+    "wf_dense": {"pipeline": {}, "dense": {}},
+    "wf_dense_2bands": {"pipeline": {}, "dense": {}, "bands": 2},
     # the paper: one band brought to the map's GSD, SIFT/RootSIFT, ratio 0.7, Nt = 100
     "paper": {},
     "paper_all_matches": {"max_matches": 0},
@@ -253,7 +330,88 @@ REG = {
 }
 
 
+def _deep(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    out = dict(a)
+    for k, v in b.items():
+        out[k] = _deep(out.get(k) or {}, v) if isinstance(v, dict) else v
+    return out
+
+
+def workflow_register_conf() -> dict[str, Any]:
+    """The ``register`` section of config/config.yaml (the workflow default)."""
+    import yaml
+
+    return yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["register"]
+
+
+def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict[str, Any]:
+    """The workflow's registration stages (georeg.register.fuse.register_query) on plain arrays."""
+    from georeg.register.fuse import register_query
+    from georeg.register.search import MapSource
+
+    t0 = time.perf_counter()
+    conf = _deep(workflow_register_conf(), spec["pipeline"])
+    fgsd = sc_map.map_gsd
+    mxy, mdesc, mang, msize = map_features(sc_map, fgsd, merged_conf(FEATURES))
+    src = MapSource(mxy, mdesc, fgsd, angle=mang, scale=msize * fgsd)
+    nb = int(spec.get("bands", 1))
+    u8 = np.stack(list(q.bands.values())[:nb]) if nb > 1 else next(iter(q.bands.values()))
+    res = register_query(u8, src, conf, q.gsd, [q.gsd / fgsd], seed)
+    split = res.get("split") or {}
+    return {
+        "matches": res.get("matches") or 0,
+        "inliers": res.get("inliers") or 0,
+        "accepted": res["status"] == "registered",
+        "log10_nfa": res.get("log10_nfa"),
+        "H": None if res.get("homography") is None else np.array(res["homography"]),
+        "parts": split.get("parts"),
+        "whole": split.get("whole_query_searched"),
+        "features": split.get("query_features"),
+        "part_side": split.get("part_side_map_px"),
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+def run_dense(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict[str, Any]:
+    """georeg.register.dense.dense_register with the whole map as the one window."""
+    from georeg.register.dense import dense_register
+    from georeg.register.search import MapSource, query_features
+
+    t0 = time.perf_counter()
+    conf = _deep(workflow_register_conf(), {"dense": spec["dense"]})
+    fgsd = sc_map.map_gsd
+    nb = int(spec.get("bands", 1))
+    u8 = np.stack(list(q.bands.values())[:nb]) if nb > 1 else next(iter(q.bands.values()))
+    mxy, mdesc, _, _ = map_features(sc_map, fgsd, merged_conf(FEATURES))
+    src = MapSource(mxy, mdesc, fgsd)
+    qf = query_features(u8, (0, u8.shape[-2]), [q.gsd / fgsd], None)
+    A = np.diag([fgsd, -fgsd, 1.0])
+    r = dense_register(u8, qf, q.gsd, sc_map.map_gray, A, src, conf, seed)
+    return {
+        "matches": r.get("matches") or 0,
+        "inliers": r.get("inliers") or 0,
+        "accepted": bool(r["accepted"]),
+        "log10_nfa": r.get("log10_nfa"),
+        "H": None if r.get("homography") is None else np.array(r["homography"]),
+        "dense_z": r.get("dense_z"),
+        "dense_log10_nfa": r.get("dense_log10_nfa"),
+        "dense_ratio": r.get("dense_peak_ratio"),
+        "seconds": time.perf_counter() - t0,
+    }
+
+
 def run_method(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict[str, Any]:
+    if "pipeline" in spec and "dense" in spec:
+        res = run_pipeline(q, sc_map, spec, seed)
+        if not res["accepted"]:
+            d = run_dense(q, sc_map, spec, seed)
+            d["seconds"] += res["seconds"]
+            return {**res, **d}
+        return res
+    if "dense" in spec:
+        return run_dense(q, sc_map, spec, seed)
+    if "pipeline" in spec:
+        return run_pipeline(q, sc_map, spec, seed)
     t0 = time.perf_counter()
     fgsd = max(sc_map.map_gsd, q.gsd) if spec.get("coarse") else sc_map.map_gsd
     fconf = merged_conf(FEATURES)
@@ -278,7 +436,8 @@ def run_method(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict
         )
     else:
         nt = spec.get("max_matches", REG["max_matches"])
-        hyps = [(matching.ratio_matches(qxy, qd, qr, mxy, knn, REG["ratio"], nt), 1)]
+        ratio = spec.get("ratio", REG["ratio"])
+        hyps = [(matching.ratio_matches(qxy, qd, qr, mxy, knn, ratio, nt), 1)]
     ext = mxy.max(axis=0) - mxy.min(axis=0)
     area = float(ext[0] * ext[1]) / fgsd**2
     n = next(iter(q.bands.values())).shape[0]
@@ -290,7 +449,8 @@ def run_method(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict
             continue
         fit = matching.fit_homography(m.q_xy, m.m_xy, fgsd, REG["ransac"], seed)
         dec = acceptance.decide(
-            fit.H, fit.residual_px, fit.n_inliers, area, n, n, q.gsd, REG["acceptance"],
+            fit.H, fit.residual_px, fit.n_inliers, area, n, n, q.gsd,
+            {**REG["acceptance"], **spec.get("acceptance", {})},
             n_candidates=ntests, inlier_q_xy=None if fit.H is None else m.q_xy[fit.inliers],
         )  # fmt: skip
         nfa = dec.get("log10_nfa", np.inf)
@@ -326,40 +486,75 @@ def run_method(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict
 
 
 def judge(q: Query, sc_map: Scene, res: dict[str, Any]) -> dict[str, Any]:
-    err = None
+    err = p90 = None
     if res["H"] is not None and q.truth is not None:
         est = matching.apply_h(res["H"], q.truth) / np.array([sc_map.map_gsd, -sc_map.map_gsd])
-        err = float(np.median(np.linalg.norm(est - q.truth_map, axis=1)))
+        e = np.linalg.norm(est - q.truth_map, axis=1)
+        e = np.where(np.isfinite(e), e, np.inf)
+        err, p90 = float(np.median(e)), float(np.percentile(e, 90))
     if not res["accepted"]:
         outcome = "missed" if q.truth is not None else "rejected"
     elif q.truth is None or err is None or err > SUCCESS_PX:
         outcome = "false_accept"
     else:
         outcome = "success"
-    return {"outcome": outcome, "error_px": err}
+    return {"outcome": outcome, "error_px": err, "p90_px": p90}
 
 
 # ----------------------------------------------------------------------------- main
 
 
-def build_set(per_scene: int, seed: int) -> tuple[list[Scene], list[Query]]:
+def build_set(per_scene: int, seed: int, small: int = 1) -> tuple[list[Scene], list[Query]]:
+    """Per scene: ``per_scene`` crops of half the scene side and ``small`` crops of 0.3-0.45 of
+    it (seeded; Potsdam: 150 px crops throughout). Unrelated pairs: every query against the map
+    of another city of the same half."""
     scenes = all_scenes()
     rng = np.random.default_rng(seed)
     qs = [make_query(sc, rng, i) for sc in scenes for i in range(per_scene)]
-    # unrelated pairs: every query against the map of another scene
+    rng2 = np.random.default_rng(seed + 1)
+    qs += [
+        make_query(sc, rng2, per_scene + i, float(rng2.uniform(0.3, 0.45)))
+        for sc in scenes
+        for i in range(small)
+    ]
     neg = []
     for k, sc in enumerate(scenes):
-        other = scenes[(k + 2) % len(scenes)]  # +2: never the other date of the same Landsat city
+        others = [o for o in scenes[k + 1 :] + scenes[:k]
+                  if o.city != sc.city and half_of(o.city) == half_of(sc.city)]  # fmt: skip
+        other = others[1 % len(others)]
         for q in (x for x in qs if x.scene == sc.name):
             name = q.name + "_vs_" + other.name
             neg.append(Query(name, sc.name, other.name, q.bands, q.gsd, None, None))
     return scenes, qs + neg
 
 
+def summarise(r: list[dict[str, Any]]) -> dict[str, Any]:
+    """Counts and error figures of one method's records (one half or all)."""
+    pos = [x for x in r if x["positive"]]
+    ok = [x for x in pos if x["outcome"] == "success"]
+    p90 = [x["p90_px"] for x in ok]
+    return {
+        "success": len(ok),
+        "positives": len(pos),
+        "false_accept": sum(x["outcome"] == "false_accept" for x in pos),
+        "unrelated_accepted": sum(x["outcome"] == "false_accept" for x in r if not x["positive"]),
+        "negatives": len(r) - len(pos),
+        "median_error_px": float(np.median([x["error_px"] for x in ok])) if ok else float("nan"),
+        "median_p90_px": float(np.median(p90)) if ok else float("nan"),
+        "p90_within_2px": sum(v <= 2.0 for v in p90),
+        "seconds_per_query": float(np.mean([x["seconds"] for x in r])) if r else float("nan"),
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("--methods", default=",".join(METHODS))
-    ap.add_argument("--per-scene", type=int, default=3)
+    ap.add_argument(
+        "--methods",
+        default="sift_plain,vote_pol_refine,wf_halves,wf_whole,wf_adaptive_only,wf_adaptive",
+    )
+    ap.add_argument("--per-scene", type=int, default=3, help="crops of half the scene side")
+    ap.add_argument("--small", type=int, default=1, help="smaller crops (0.3-0.45 of the side)")
+    ap.add_argument("--half", choices=("tuning", "checking", "both"), default="both")
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--out", default=str(ROOT / "results" / "benchmark" / "crossspectral.json"))
     ap.add_argument("-v", action="store_true", help="one line per query and method")
@@ -368,41 +563,48 @@ def main(argv: list[str] | None = None) -> int:
         print(f"no development data at {DATES}", file=sys.stderr)
         return 1
     cv2.setNumThreads(1)
-    scenes, queries = build_set(a.per_scene, a.seed)
+    scenes, queries = build_set(a.per_scene, a.seed, a.small)
     by = {s.name: s for s in scenes}
+    if a.half != "both":
+        queries = [q for q in queries if half_of(by[q.scene].city) == a.half]
     methods = a.methods.split(",")
     rows: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
     for qi, q in enumerate(queries):
+        half = half_of(by[q.scene].city)
         for name in methods:
             res = run_method(q, by[q.map_scene], METHODS[name], a.seed + qi)
             j = judge(q, by[q.map_scene], res)
-            rec = {"query": q.name, "positive": q.truth is not None, **j,
+            rec = {"query": q.name, "half": half, "positive": q.truth is not None, **j,
                    "inliers": res["inliers"], "matches": res["matches"],
-                   "log10_nfa": res.get("log10_nfa"), "seconds": res["seconds"]}  # fmt: skip
+                   "parts": res.get("parts"), "whole": res.get("whole"),
+                   "features": res.get("features"), "part_side": res.get("part_side"),
+                   "size_px": next(iter(q.bands.values())).shape[0],
+                   "log10_nfa": res.get("log10_nfa"), "seconds": res["seconds"],
+                   "dense_z": res.get("dense_z"), "dense_log10_nfa": res.get("dense_log10_nfa"),
+                   "dense_ratio": res.get("dense_ratio")}  # fmt: skip
             rows[name].append(rec)
             if a.v:
-                e = "-" if j["error_px"] is None else f"{j['error_px']:.2f}"
-                print(f"{q.name:34s} {name:18s} {j['outcome']:12s} err {e:>8s} "
-                      f"inl {res['inliers']:3d}/{res['matches']:3d}", flush=True)  # fmt: skip
-    n_pos = sum(q.truth is not None for q in queries)
-    n_neg = len(queries) - n_pos
-    print(f"\n{n_pos} queries + {n_neg} unrelated pairs, seed {a.seed}")
-    print(
-        "| method | registered | false accepts | unrelated accepted | median error px | s/query |"
-    )
-    print("|---|---|---|---|---|---|")
-    summary = {}
+                e = "-" if j["error_px"] is None else f"{j['error_px']:.2f}/{j['p90_px']:.2f}"
+                print(f"{half[:5]} {q.name:40s} {name:16s} {j['outcome']:12s} err {e:>12s} "
+                      f"inl {res['inliers']:3d}/{res['matches']:3d} parts {res.get('parts')} "
+                      f"{res['seconds']:.2f}s", flush=True)  # fmt: skip
+    print(f"\n{len(queries)} queries and unrelated pairs, seed {a.seed}; halves by city: "
+          f"tuning {', '.join(TUNING)}; checking {', '.join(CHECKING)}")  # fmt: skip
+    print("| method | half | registered | false accepts | unrelated accepted | median err px "
+          "| median p90 px | p90 <= 2 px | s/query |")  # fmt: skip
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|")
+    summary: dict[str, Any] = {}
     for name in methods:
-        r = rows[name]
-        ok = [x for x in r if x["outcome"] == "success"]
-        fa = sum(x["outcome"] == "false_accept" and x["positive"] for x in r)
-        fneg = sum(x["outcome"] == "false_accept" and not x["positive"] for x in r)
-        med = float(np.median([x["error_px"] for x in ok])) if ok else float("nan")
-        sec = float(np.mean([x["seconds"] for x in r]))
-        summary[name] = {"success": len(ok), "positives": n_pos, "false_accept": fa,
-                         "unrelated_accepted": fneg, "negatives": n_neg,
-                         "median_error_px": med, "seconds_per_query": sec}  # fmt: skip
-        print(f"| {name} | {len(ok)}/{n_pos} | {fa} | {fneg}/{n_neg} | {med:.2f} | {sec:.2f} |")
+        summary[name] = {}
+        for half in ("tuning", "checking"):
+            sm = summarise([x for x in rows[name] if x["half"] == half])
+            summary[name][half] = sm
+            if not sm["positives"]:
+                continue
+            print(f"| {name} | {half} | {sm['success']}/{sm['positives']} | {sm['false_accept']} "
+                  f"| {sm['unrelated_accepted']}/{sm['negatives']} | {sm['median_error_px']:.2f} "
+                  f"| {sm['median_p90_px']:.2f} | {sm['p90_within_2px']}/{sm['success']} "
+                  f"| {sm['seconds_per_query']:.2f} |")  # fmt: skip
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps({"summary": summary, "rows": rows}, indent=1, default=float))
     return 0

@@ -17,6 +17,7 @@ def main(smk):
         int(smk.params.seed),
         smk.output.registration,
         smk.output.geolocation,
+        smk.input.ortho,
     )
 
 

@@ -86,6 +86,38 @@ def test_synthetic_jitter_recovered_to_subpixel(pair):
     assert info["residual_after_px"]["median"] < 0.5 * info["residual_before_px"]["median"]
 
 
+def test_support_weight_full_near_tie_points_zero_far_away():
+    from georeg.register.refine import support_weight
+
+    w = support_weight(np.array([[10.0, 10.0]]), 100, 40, 5.0, 20.0)
+    assert w[10, 10] == 1.0 and w[10, 14] == 1.0  # within 5 px
+    assert 0.0 < w[10, 22] < 1.0 and w[10, 31:].max() == 0.0
+    assert np.all(np.diff(w[10, 10:40]) <= 1e-6)  # monotone fade
+    assert support_weight(np.zeros((0, 2)), 50, 20, 5.0, 20.0).max() == 0.0
+    assert support_weight(np.zeros((0, 2)), 50, 20, 5.0, 0.0).min() == 1.0
+
+
+def test_local_model_fades_to_the_global_fit_where_no_tie_point_supports_it(pair):
+    band = pair["band"].copy()
+    band[200:] = 128  # the last third of the lines: no structure, no tie point
+    x0, y0 = apply_h(pair["H"], np.arange(220.0)[None, :], np.arange(300.0)[:, None])
+    e0 = np.hypot(x0 - pair["truth"][0], y0 - pair["truth"][1])
+    res = {}
+    for zero in (0.0, 4.0):  # without / with the support taper
+        x, y, info = refine(band, pair["H"], pair["map"], {"model": "per_line",
+                                                           "support_zero_steps": zero})  # fmt: skip
+        res[zero] = (np.hypot(x - pair["truth"][0], y - pair["truth"][1]), info)
+    e, info = res[4.0]
+    assert info["support"]["none_fraction"] > 0.15
+    # supported lines are corrected as before; unsupported lines end at the global fit
+    assert np.median(e[:180]) < 0.5 * np.median(e0[:180])
+    assert np.allclose(e[260:], e0[260:], atol=1e-6)
+    assert np.percentile(e[230:], 90) <= np.percentile(e0[230:], 90) + 0.05
+    # without the taper the per-line model extrapolates there (measured p90 5.5 px vs 0.9)
+    e_free = res[0.0][0]
+    assert np.percentile(e[200:], 90) < 0.5 * np.percentile(e_free[200:], 90)
+
+
 def test_shift_measurement_sign_and_subpixel():
     rng = np.random.default_rng(5)
     img = _texture(rng, 160)

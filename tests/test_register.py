@@ -12,7 +12,8 @@ from rasterio.transform import Affine
 
 from georeg.index.features import detect_and_describe, pixel_to_map
 from georeg.io.query import open_query
-from georeg.register import acceptance, matching
+from georeg.register import acceptance, matching, search
+from georeg.register import fuse as fuse_mod
 from georeg.register.band import select_band, stretch_uint8
 from georeg.register.fuse import fuse
 from georeg.register.geolocation import evaluate, map_xy, write_geolocation
@@ -150,6 +151,51 @@ def test_plausibility_handedness_scale_and_nfa():
     assert acceptance.log10_nfa(res6, 2000 * 2000, n_tests_extra=10)[0] > 0
 
 
+def test_split_plan_keeps_paper_halves_for_large_queries_and_searches_small_ones_whole():
+    conf = reg_conf()
+    # the default demo query (829 x 1163 px at 0.8 m on a 1 m map; about 7300 features per
+    # feature Mpx, as measured on the tiny demo) keeps the paper's two halves
+    plan = search.split_plan(4500, 829, 1163, 0.8, 2, conf)
+    assert plan["parts"] == 2 and plan["searches"] == ["part 0", "part 1", "whole"]
+    # a 166 x 156 px Sentinel-2 query at 20 m on a 10 m map: too few features per half
+    plan = search.split_plan(900, 166, 156, 2.0, 2, conf)
+    assert plan["parts"] == 1 and "features per part" in plan["reason"]
+    assert plan["searches"] == ["whole", "part 0", "part 1"]
+    # enough features, but a part's footprint is too narrow on the map
+    plan = search.split_plan(5000, 1000, 200, 1.0, 2, conf)
+    assert plan["parts"] == 1 and "part side 100 map px" in plan["reason"]
+    assert search.split_plan(5000, 900, 900, 1.0, 1, conf)["searches"] == ["whole"]
+    off = reg_conf(split={"parts_if_whole_fails": False, "count_searches": False})
+    plan = search.split_plan(900, 166, 156, 2.0, 2, off)
+    assert plan["searches"] == ["whole"] and search.search_count(plan) == 1
+
+
+def test_small_query_searched_whole_then_fused_and_idle_part_recorded(synthetic_map):
+    img, tr, src = synthetic_map
+    q, Minv = warp_query(img[100:260, 120:300], 1.0, 30.0)
+    Minv = np.array([[1, 0, 120], [0, 1, 100], [0, 0, 1]]) @ Minv
+    conf = reg_conf()
+    factors = [1.0]
+    parts = [search.search_one_part(q, k, src, conf, None, factors, 5) for k in range(2)]
+    assert parts[0]["split"]["parts"] == 1 and parts[0]["accepted"]
+    assert parts[0]["rows"] == [0, q.shape[0]] and parts[1]["skipped"]
+    full = query_features(q, (0, q.shape[0]), factors, None)
+    parts, split = fuse_mod.whole_query_fallback(full, src, parts, conf, None, 5)
+    assert split["idle_part_jobs"] == [1] and split["whole_query_searched"] == "first, in part 0"
+    fused = fuse(full, src, parts, conf, None)
+    assert fused["status"] == "registered"
+    assert np.median(error_px(np.array(fused["homography"]), Minv, tr, q)) < 1.0
+
+
+def test_query_features_pool_a_band_stack():
+    a, b = texture((120, 140), seed=1), texture((120, 140), seed=2)
+    fa = query_features(a, (10, 90), [1.0], FEAT)
+    fb = query_features(b, (10, 90), [1.0], FEAT)
+    fab = query_features(np.stack([a, b]), (10, 90), [1.0], FEAT)
+    assert len(fab) == len(fa) + len(fb) and (fab.width, fab.height) == (140, 80)
+    assert np.allclose(fab.xy[: len(fa)], fa.xy) and fab.xy[:, 1].min() >= 10
+
+
 def test_paper_centres_cover_the_map_without_replacement():
     c = paper_centres((0, 0, 1000, 800), 400, seed=5)
     assert len(np.unique(c, axis=0)) == len(c) >= 5 * 4
@@ -283,3 +329,103 @@ def test_enmap_swir_registers_onto_visible(enmap, swir):
     assert fused["status"] == "registered"
     err = error_px(np.array(fused["homography"]), Minv, tr, q)
     assert np.median(err) < 1.0 and np.percentile(err, 90) < 1.5
+
+
+def default_register_conf() -> dict:
+    """The workflow's default ``register`` section (config/config.yaml)."""
+    import yaml
+
+    return yaml.safe_load((REPO / "config" / "config.yaml").read_text())["register"]
+
+
+@pytest.mark.shared
+@pytest.mark.parametrize(("angle", "centre"), [(25.0, (257, 321)), (140.0, (176, 251))])
+def test_small_enmap_swir_query_registers_in_default_config(enmap, angle, centre):
+    """A 150 x 150 px EnMAP SWIR query (15 m, rotated) against the cube's own visible band."""
+    from georeg.register.fuse import register_query
+
+    cube, tr = enmap
+    vis, vm, _ = select_band(cube, "650nm")
+    v8, _ = stretch_uint8(vis, vm)
+    src = map_source(v8, vm, tr)
+    sw, sm, _ = select_band(cube, "2200nm")
+    s8, _ = stretch_uint8(sw, sm)
+    q, Minv = warp_query(s8, 2.0, angle)
+    c0, r0 = centre[0] - 75, centre[1] - 75
+    q = np.ascontiguousarray(q[r0 : r0 + 150, c0 : c0 + 150])
+    assert q.shape == (150, 150) and (q > 0).mean() > 0.5
+    Minv = Minv @ np.array([[1.0, 0, c0], [0, 1.0, r0], [0, 0, 1]])
+    conf = default_register_conf()
+    res = register_query(q, src, conf, 15.0, [15.0 / 30.0], seed=3)
+    assert res["status"] == "registered", res.get("reason")
+    assert res["split"]["parts"] == 1 and "whole query" in res["split"]["reason"]
+    err = error_px(np.array(res["homography"]), Minv, tr, q)
+    assert np.median(err) < 1.0 and np.percentile(err, 90) < 2.0
+
+
+@pytest.mark.shared
+def test_dense_search_registers_real_swir_and_rejects_an_unrelated_map(enmap):
+    """CFOG correlation over rotations + guided re-match: the EnMAP 2200 nm query found in the
+    650 nm band with no feature search at all; the same query in a random texture is refused."""
+    from georeg.register.dense import dense_register, dense_search, window_u8
+
+    cube, tr = enmap
+    vis, vm, _ = select_band(cube, "650nm")
+    v8, _ = stretch_uint8(vis, vm)
+    src = map_source(v8, vm, tr)
+    sw, sm, _ = select_band(cube, "2200nm")
+    s8, _ = stretch_uint8(sw, sm)
+    q, Minv = warp_query(s8, 2.0, 140.0)
+    c0, r0 = 176 - 75, 251 - 75
+    q = np.ascontiguousarray(q[r0 : r0 + 150, c0 : c0 + 150])
+    Minv = Minv @ np.array([[1.0, 0, c0], [0, 1.0, r0], [0, 0, 1]])
+    r = dense_search(q, 0.5, v8, 10.0)
+    assert r is not None and abs(((r.angle_deg - 140.0) + 180) % 360 - 180) <= 10.0
+    assert r.log10_nfa < -3
+    conf = default_register_conf()
+    qf = query_features(q, (0, 150), [0.5], FEAT)
+    A = np.array([[tr.a, tr.b, tr.c], [tr.d, tr.e, tr.f], [0, 0, 1.0]]) @ np.array(
+        [[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1.0]]
+    )
+    rec = dense_register(q, qf, 15.0, window_u8(np.where(vm, vis, np.nan)), A, src, conf, 1)
+    assert rec["accepted"], rec
+    err = error_px(np.array(rec["homography"]), Minv, tr, q)
+    assert np.median(err) < 1.0 and np.percentile(err, 90) < 2.0
+    other = texture(v8.shape, seed=5)
+    osrc = map_source(other, np.ones(other.shape, bool), tr)
+    bad = dense_register(q, qf, 15.0, other, A, osrc, conf, 1)
+    assert not bad["accepted"]
+
+
+def test_candidate_windows_whole_query_first_distinct():
+    parts = [
+        {"part": 0, "rows": [0, 50], "candidates": [{"bounds": [0, 0, 10, 10]}]},
+        {"part": 1, "rows": [50, 100], "candidates": [{"bounds": [1, 1, 11, 11]},
+                                                      {"bounds": [40, 40, 50, 50]}]},
+        {"part": 2, "whole_query": True, "rows": [0, 100],
+         "candidates": [{"bounds": [20, 20, 30, 30]}, {"bounds": [0.5, 0, 10.5, 10]}]},
+    ]  # fmt: skip
+    wins = fuse_mod.candidate_windows(parts, 3)
+    assert wins == [(20, 20, 30, 30), (0.5, 0, 10.5, 10), (40, 40, 50, 50)]
+
+
+def test_dense_fallback_off_by_default_and_refuses_an_unrelated_map(synthetic_map):
+    img, tr, src = synthetic_map
+    q = texture((120, 120), seed=99)  # not on the map
+    full = query_features(q, (0, 120), [1.0], None)
+    parts = [{"part": 0, "rows": [0, 120], "accepted": False,
+              "candidates": [{"bounds": [430100.0, 3769500.0, 430500.0, 3769900.0]}]}]  # fmt: skip
+    A = np.array([[1.0, 0, 430000.5], [0, -1.0, 3769999.5], [0, 0, 1]])
+
+    def read(b):
+        c0, r0 = int(b[0] - 430000), int(3770000 - b[3])
+        c1, r1 = int(b[2] - 430000), int(3770000 - b[1])
+        win = img[r0:r1, c0:c1].astype(np.float32)
+        return win, A @ np.array([[1.0, 0, c0], [0, 1.0, r0], [0, 0, 1]])
+
+    out, rec = fuse_mod.dense_fallback(q, full, src, parts, reg_conf(), 1.0, read)
+    assert out == parts and rec == {"ran": False, "reason": "disabled"}
+    on = reg_conf(dense={"enabled": True})
+    out, rec = fuse_mod.dense_fallback(q, full, src, parts, on, 1.0, read)
+    assert rec["ran"] and len(rec["windows"]) == 1 and rec["accepted_window"] is None
+    assert out == parts

@@ -14,7 +14,15 @@ from typing import Any
 import numpy as np
 
 from georeg.register import matching
-from georeg.register.search import MapSource, QueryFeatures, verify
+from georeg.register.search import (
+    MapSource,
+    QueryFeatures,
+    query_features,
+    search_count,
+    search_one_part,
+    search_part,
+    verify,
+)
 
 log = logging.getLogger(__name__)
 
@@ -66,8 +74,9 @@ def fuse(
     out: dict[str, Any] = {"parts_accepted": [p["part"] for p in acc]}
     if not acc:
         reasons = "; ".join(
-            f"part {p['part']}: {p['candidates_tried']} candidate(s) tried, none accepted"
+            f"{_part_name(p)}: {p['candidates_tried']} candidate(s) tried, none accepted"
             for p in parts
+            if not p.get("skipped")
         )
         out.update(status="not_found", reason=reasons or "no part", homography=None)
         return out
@@ -129,6 +138,8 @@ def fuse(
         after = {}
         res_m = fit.residual_px * source.gsd_m
         for p in parts:
+            if p.get("skipped"):
+                continue
             r0, r1 = p["rows"]
             sel = inl & (m.q_xy[:, 1] >= r0) & (m.q_xy[:, 1] < r1)
             entry: dict[str, Any] = {
@@ -160,6 +171,135 @@ def fuse(
     return out
 
 
+def _part_name(p: dict[str, Any]) -> str:
+    return "whole query" if p.get("whole_query") else f"part {p['part']}"
+
+
+def whole_query_fallback(
+    full: QueryFeatures,
+    source: MapSource,
+    parts: list[dict[str, Any]],
+    conf: dict[str, Any],
+    gsd_m: float | None,
+    seed: int = 0,
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """When the query was split and every part failed, search the whole query as one more part.
+
+    Returns the parts (with the whole-query search appended when it ran) and the split record
+    for registration.json: the plan the parts followed and whether the whole query was searched.
+    """
+    plan = dict(next((p["split"] for p in parts if p.get("split")), None) or {})
+    skipped = [p["part"] for p in parts if p.get("skipped")]
+    if skipped:
+        plan["idle_part_jobs"] = skipped
+    if plan.get("parts", 1) == 1:
+        plan["whole_query_searched"] = "first, in part 0" if plan else "not recorded"
+        return parts, plan
+    if any(p.get("accepted") for p in parts) or not plan.get("whole_if_parts_fail", True):
+        plan["whole_query_searched"] = "no"
+        return parts, plan
+    log.info("every part failed: searching the whole query")
+    whole = search_part(full, source, conf, gsd_m, seed + 1000 * len(parts), search_count(plan))
+    whole.update(part=len(parts), whole_query=True)
+    plan["whole_query_searched"] = "after every part failed"
+    return [*parts, whole], plan
+
+
+def candidate_windows(parts: list[dict[str, Any]], n: int) -> list[tuple[float, ...]]:
+    """The first ``n`` distinct candidate regions the searches tried: the whole query's searches
+    first, then the parts', each in the order tried; regions overlapping a kept one by more
+    than half of the smaller are dropped."""
+    order = sorted(parts, key=lambda p: (not p.get("whole_query"), p["part"]))
+    out: list[tuple[float, ...]] = []
+    for p in order:
+        for c in p.get("candidates") or []:
+            b = tuple(float(v) for v in c["bounds"])
+            if any(_overlap(b, o) > 0.5 for o in out):
+                continue
+            out.append(b)
+            if len(out) >= n:
+                return out
+    return out
+
+
+def _overlap(a: tuple[float, ...], b: tuple[float, ...]) -> float:
+    ix = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    iy = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    small = min((a[2] - a[0]) * (a[3] - a[1]), (b[2] - b[0]) * (b[3] - b[1]))
+    return ix * iy / small if small > 0 else 0.0
+
+
+def dense_fallback(
+    u8: np.ndarray,
+    full: QueryFeatures,
+    source: MapSource,
+    parts: list[dict[str, Any]],
+    conf: dict[str, Any],
+    gsd_m: float | None,
+    read_window: Any,
+    seed: int = 0,
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """When no search accepted anything: the dense CFOG search (georeg.register.dense) in the
+    first ``register.dense.max_windows`` candidate regions, each followed by a guided feature
+    re-match; the first accepted one becomes one more (whole-query) part.
+
+    ``read_window(bounds)`` -> (float gray window, NaN = nodata; 3 x 3 window pixel centre ->
+    map x, y) or None. Returns the parts and a record of what was tried.
+    """
+    from georeg.register.dense import dense_conf, dense_register, window_u8
+
+    dc = dense_conf(conf)
+    if any(p.get("accepted") for p in parts):
+        return parts, {"ran": False, "reason": "a search was accepted"}
+    if not dc["enabled"] or not gsd_m:
+        why = "disabled" if not dc["enabled"] else "the query GSD is unknown"
+        return parts, {"ran": False, "reason": why}
+    windows = candidate_windows(parts, int(dc["max_windows"]))
+    tried = []
+    for k, b in enumerate(windows):
+        got = read_window(b)
+        if got is None:
+            continue
+        gray, A = got
+        rec = dense_register(u8, full, gsd_m, window_u8(gray), A, source, conf, seed + k,
+                             len(windows))  # fmt: skip
+        rec["bounds"] = list(b)
+        tried.append({k2: rec.get(k2) for k2 in ("bounds", "accepted", "inliers", "log10_nfa",
+                      "angle_deg", "dense_z", "dense_log10_nfa", "reason", "seconds")})  # fmt: skip
+        log.info("dense search in window %d: %s inliers, log10 NFA %s -> %s", k,
+                 rec.get("inliers"), rec.get("log10_nfa"),
+                 "ACCEPT" if rec["accepted"] else rec.get("reason"))  # fmt: skip
+        if rec["accepted"]:
+            part = {**rec, "part": len(parts), "rows": [0, full.height], "whole_query": True,
+                    "dense": True, "candidates_tried": k + 1, "candidates": []}  # fmt: skip
+            return [*parts, part], {"ran": True, "windows": tried, "accepted_window": k}
+    return parts, {"ran": True, "windows": tried, "accepted_window": None}
+
+
+def register_query(
+    u8: np.ndarray,
+    source: MapSource,
+    conf: dict[str, Any],
+    gsd_m: float | None,
+    factors: list[float],
+    seed: int = 0,
+    read_window: Any = None,
+) -> dict[str, Any]:
+    """The workflow's search_part jobs and fuse_parts in one process: split plan, every part,
+    the whole-query fallback, the dense fallback (when ``read_window`` is given, see
+    ``dense_fallback``), fusion. Returns the fused result with ``split`` and ``parts``."""
+    h = u8.shape[-2]
+    full = query_features(u8, (0, h), factors, source.features_conf)
+    n = int(conf.get("parts", 2))
+    parts = [search_one_part(u8, k, source, conf, gsd_m, factors, seed, full) for k in range(n)]
+    parts, split = whole_query_fallback(full, source, parts, conf, gsd_m, seed)
+    if read_window is not None:
+        parts, split["dense"] = dense_fallback(u8, full, source, parts, conf, gsd_m, read_window,
+                                               seed)  # fmt: skip
+    fused = fuse(full, source, parts, conf, gsd_m, seed)
+    return {**fused, "split": split, "parts": parts}
+
+
 def run_fuse_parts(
     band_tif: str,
     band_json: str,
@@ -172,15 +312,18 @@ def run_fuse_parts(
     seed: int,
     out_json: str,
     out_geoloc: str,
+    ortho: str | None = None,
 ) -> dict[str, Any]:
-    """Rule fuse_parts: fuse, write geolocation.tif (all NaN when not found) and registration.json."""
+    """Rule fuse_parts: fuse, write geolocation.tif (all NaN when not found) and registration.json.
+
+    ``ortho``: the orthophoto mosaic, read for the dense fallback when no search was accepted."""
     import json
     from pathlib import Path
 
     from georeg.io.atomic import write_json
     from georeg.register.band import feature_scales, read_query_band
     from georeg.register.geolocation import evaluate, write_geolocation
-    from georeg.register.search import gsd_in_map_units, load_source, query_features
+    from georeg.register.search import gsd_in_map_units, load_source
 
     t0 = time.perf_counter()
     meta = json.loads(Path(band_json).read_text())
@@ -195,18 +338,21 @@ def run_fuse_parts(
     }
     fused: dict[str, Any]
     t1 = time.perf_counter()
-    if any(p.get("accepted") for p in parts):
-        factors = feature_scales(gsd, source.gsd_m, reg_conf.get("unknown_gsd_factors", [1.0]))
-        full = query_features(u8, (0, h), factors, source.features_conf)
-        timings["fuse_features"] = time.perf_counter() - t1
-        t1 = time.perf_counter()
-        fused = fuse(full, source, parts, reg_conf, gsd, seed)
-        timings["fuse_match"] = time.perf_counter() - t1
-    else:
-        dummy = QueryFeatures(
-            np.zeros((0, 2)), np.zeros((0, 128), np.float32), np.zeros(0), w, h, (0, 0), [1.0]
-        )
-        fused = fuse(dummy, source, parts, reg_conf, gsd, seed)
+    factors = feature_scales(gsd, source.gsd_m, reg_conf.get("unknown_gsd_factors", [1.0]))
+    full = query_features(u8, (0, h), factors, source.features_conf)
+    timings["fuse_features"] = time.perf_counter() - t1
+    t1 = time.perf_counter()
+    parts, split = whole_query_fallback(full, source, parts, reg_conf, gsd, seed)
+    if split.get("whole_query_searched") == "after every part failed":
+        timings["whole_query_search"] = time.perf_counter() - t1
+    t1 = time.perf_counter()
+    reader = None if not ortho else ortho_window_reader(ortho)
+    parts, split["dense"] = dense_fallback(u8, full, source, parts, reg_conf, gsd, reader, seed)
+    if split["dense"].get("ran"):
+        timings["dense_search"] = time.perf_counter() - t1
+    t1 = time.perf_counter()
+    fused = fuse(full, source, parts, reg_conf, gsd, seed)
+    timings["fuse_match"] = time.perf_counter() - t1
     H = None if fused.get("homography") is None else np.array(fused["homography"])
     t1 = time.perf_counter()
     geo = write_geolocation(out_geoloc, H, w, h, dsm, source.crs_wkt)
@@ -230,10 +376,14 @@ def run_fuse_parts(
         "map_px_m": map_px,
         "feature_gsd_m": source.gsd_m,
         "candidates_tried": int(sum(p.get("candidates_tried", 0) for p in parts)),
+        "split": split,
         "parts": [
             {
                 "part": p["part"],
                 "rows": p["rows"],
+                "whole_query": p["rows"] == [0, h],
+                "dense": bool(p.get("dense")),
+                "skipped": bool(p.get("skipped")),
                 "accepted": p["accepted"],
                 "candidates_tried": p["candidates_tried"],
                 "inliers": p["inliers"],
@@ -242,6 +392,7 @@ def run_fuse_parts(
                 "seconds": p.get("seconds"),
             }
             for p in parts
+            if not p.get("skipped")
         ],
         "fuse": {k: v for k, v in fused.items() if k not in ("homography", "status", "reason")},
         "geolocation": {"path": str(out_geoloc), **geo},
@@ -256,6 +407,25 @@ def run_fuse_parts(
     reg["timings_s"] = timings
     write_json(out_json, reg)
     return reg
+
+
+def ortho_window_reader(ortho: str) -> Any:
+    """bounds -> (gray window, NaN = nodata; 3 x 3 window pixel centre -> map x, y) or None."""
+    from georeg.io.errors import InputError
+    from georeg.register.refine import read_map_gray
+
+    def read(b: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray] | None:
+        try:
+            mi = read_map_gray(ortho, np.array([b[0], b[2]]), np.array([b[1], b[3]]), pad=0.0)
+        except InputError:
+            return None
+        a, bb, c, d, e, f = (float(v) for v in tuple(mi.transform)[:6])
+        A = np.array([[a, bb, c], [d, e, f], [0, 0, 1.0]]) @ np.array(
+            [[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1.0]]
+        )
+        return mi.gray, A
+
+    return read
 
 
 def _map_px(grid_path: str | None) -> float | None:

@@ -63,6 +63,8 @@ DEFAULTS: dict[str, Any] = {
     "auto_min_gain": 0.05,
     "auto_models": ["per_line", "polynomial"],
     "seed": 0,
+    "support_full_steps": 1.5,
+    "support_zero_steps": 4.0,
 }
 MODELS = ("per_line", "polynomial", "tps", "homography")
 
@@ -470,6 +472,25 @@ def cross_validate(name: str, pts: np.ndarray, d: np.ndarray, w: np.ndarray, wid
 # ----------------------------------------------------------------------------- the loop
 
 
+def support_weight(
+    pts: np.ndarray, width: int, height: int, full: float, zero: float
+) -> np.ndarray:
+    """Weight (height, width) of the local correction: 1 within ``full`` px of a tie point,
+    falling smoothly (cosine) to 0 at ``zero`` px, 0 beyond; all ones when ``zero`` <= 0."""
+    if zero <= 0:
+        return np.ones((height, width), np.float32)
+    seeds = np.full((height, width), 255, np.uint8)
+    if len(pts):
+        c = np.clip(np.round(pts[:, 0]).astype(int), 0, width - 1)
+        r = np.clip(np.round(pts[:, 1]).astype(int), 0, height - 1)
+        seeds[r, c] = 0
+    else:
+        return np.zeros((height, width), np.float32)
+    d = cv2.distanceTransform(seeds, cv2.DIST_L2, 5)
+    t = np.clip((d - full) / max(zero - full, 1e-6), 0.0, 1.0)
+    return (0.5 + 0.5 * np.cos(np.pi * t)).astype(np.float32)
+
+
 def _stats(v: np.ndarray) -> dict[str, float | None]:
     n = np.hypot(*v.T) if len(v) else np.zeros(0)
     if n.size == 0:
@@ -515,6 +536,7 @@ def refine(
     final = None
     chosen = "homography"
     cv: dict[str, float] = {}
+    support = np.ones((h, w), np.float32)
     n_iter = max(1, int(c["iterations"]))
     for it in range(n_iter + 1):
         x, y = apply_h(H, cols + D[..., 0], rows + D[..., 1])
@@ -579,6 +601,14 @@ def refine(
                 chosen = requested
         model = make_model(chosen, w, h, c).fit(pts[ok], target[ok], wts)
         D = model(np.broadcast_to(cols, (h, w)), np.broadcast_to(rows, (h, w)))
+        if it == 0:  # the tie points of the global fit decide where a local model may act
+            support = support_weight(pts[ok], w, h, float(c["support_full_steps"]) * step,
+                                     float(c["support_zero_steps"]) * step)  # fmt: skip
+            info["support"] = {
+                "full_fraction": float((support >= 0.999).mean()),
+                "none_fraction": float((support <= 0.001).mean()),
+            }
+        D = D * support[..., None]
     assert before is not None and final is not None
     x, y = apply_h(H, cols + D[..., 0], rows + D[..., 1])
     bm, bok = before["m"], before["ok"]

@@ -108,6 +108,64 @@ class QueryFeatures:
         return len(self.xy)
 
 
+SPLIT_DEFAULTS: dict[str, Any] = {
+    "min_part_features": 1000,
+    "min_part_side_px": 256.0,
+    "whole_if_parts_fail": True,
+    "parts_if_whole_fails": True,
+    "count_searches": True,
+}
+
+
+def split_plan(
+    n_features: int, width: int, height: int, factor: float, parts: int, conf: dict[str, Any]
+) -> dict[str, Any]:
+    """Whether to search ``parts`` along-track parts or the whole query, and why.
+
+    ``n_features``: query features of the whole query at the map's feature GSD; ``factor``: query
+    GSD / feature GSD (the largest guess when the GSD is unknown). The query is split only when
+    each part keeps at least ``register.split.min_part_features`` features and its footprint's
+    smaller side is at least ``min_part_side_px`` map feature pixels; otherwise one search covers
+    the whole query. ``searches`` lists every search the plan may run (the NFA counts them all):
+    a split query's parts, then the whole query if every part fails (``whole_if_parts_fail``);
+    a whole query, then its parts if it fails (``parts_if_whole_fails``).
+    """
+    sc = {**SPLIT_DEFAULTS, **(conf.get("split") or {})}
+    per = n_features / max(parts, 1)
+    side = min(width, height / max(parts, 1)) * float(factor)
+    plan: dict[str, Any] = {
+        "configured_parts": int(parts),
+        "query_features": int(n_features),
+        "features_per_part": round(per, 1),
+        "part_side_map_px": round(side, 1),
+        "min_part_features": int(sc["min_part_features"]),
+        "min_part_side_px": float(sc["min_part_side_px"]),
+        "whole_if_parts_fail": bool(sc["whole_if_parts_fail"]),
+        "parts_if_whole_fails": bool(sc["parts_if_whole_fails"]),
+        "count_searches": bool(sc["count_searches"]),
+    }
+    names = [f"part {k}" for k in range(parts)]
+    if parts <= 1:
+        return {**plan, "parts": 1, "reason": "one part configured", "searches": ["whole"]}
+    short = []
+    if per < plan["min_part_features"]:
+        short.append(f"{per:.0f} features per part < {plan['min_part_features']}")
+    if side < plan["min_part_side_px"]:
+        short.append(f"part side {side:.0f} map px < {plan['min_part_side_px']:.0f}")
+    if short:
+        then = names if plan["parts_if_whole_fails"] else []
+        return {**plan, "parts": 1, "reason": "whole query searched: " + "; ".join(short),
+                "searches": ["whole", *then]}  # fmt: skip
+    then = ["whole"] if plan["whole_if_parts_fail"] else []
+    return {**plan, "parts": int(parts), "reason": f"split in {parts}: each part large enough",
+            "searches": [*names, *then]}  # fmt: skip
+
+
+def search_count(plan: dict[str, Any]) -> int:
+    """Searches the NFA counts for each search of the plan (1 when ``count_searches`` is off)."""
+    return len(plan["searches"]) if plan.get("count_searches", True) else 1
+
+
 def part_rows(height: int, parts: int, part: int) -> tuple[int, int]:
     """Rows [r0, r1) of part ``part`` of ``parts`` equal along-track slices."""
     edges = np.linspace(0, height, parts + 1).round().astype(int)
@@ -122,15 +180,17 @@ def query_features(
 ) -> QueryFeatures:
     """Detect features on rows ``rows`` of the band at each resize factor; pool them.
 
-    ``band_u8``: stretched band, 0 = nodata. A factor brings the query to the map's feature GSD
-    (query_gsd / feature_gsd); keypoints are mapped back to original query pixels.
+    ``band_u8``: stretched band (rows, cols), 0 = nodata, or several co-registered bands
+    (bands, rows, cols) whose features are pooled. A factor brings the query to the map's
+    feature GSD (query_gsd / feature_gsd); keypoints are mapped back to original query pixels.
     """
     r0, r1 = rows
-    img = np.ascontiguousarray(band_u8[r0:r1])
-    mask = img > 0
+    stack = band_u8 if band_u8.ndim == 3 else band_u8[None]
+    img = np.ascontiguousarray(stack[0, r0:r1])
     xs, ds, rs, angs, sizes = [], [], [], [], []
-    for f in factors:
-        im, m, (sx, sy) = resample(img, float(f), mask)
+    for f, b in ((f, b) for b in range(len(stack)) for f in factors):
+        one = np.ascontiguousarray(stack[b, r0:r1])
+        im, m, (sx, sy) = resample(one, float(f), one > 0)
         feats = detect_and_describe(im, m, features_conf or {})
         if len(feats) == 0:
             continue
@@ -389,10 +449,13 @@ def search_part(
     conf: dict[str, Any],
     gsd_m: float | None,
     seed: int,
+    searches: int = 1,
 ) -> dict[str, Any]:
     """Search the map for one part; stop at the first accepted candidate or when the budget ends.
 
-    ``conf`` is the ``register`` config section. Returns a JSON-ready dict (see docs/ARCHITECTURE.md).
+    ``conf`` is the ``register`` config section; ``searches``: how many searches of this query
+    the split plan may run (multiplies the NFA's test count). Returns a JSON-ready dict (see
+    docs/ARCHITECTURE.md).
     """
     t0 = time.perf_counter()
     strategy = str(conf.get("strategy", "index"))
@@ -422,7 +485,8 @@ def search_part(
         if i > 0 and time.perf_counter() - t0 > max_s:
             log.info("search budget of %.0f s used after %d candidates", max_s, i)
             break
-        rec, m, fit = verify(qf, source, b, conf, gsd_m, n_candidates=len(cands), seed=seed + i)
+        n_tests = len(cands) * max(int(searches), 1)
+        rec, m, fit = verify(qf, source, b, conf, gsd_m, n_candidates=n_tests, seed=seed + i)
         rec["rank"] = i
         rec["score"] = score
         tried.append(rec)
@@ -522,13 +586,59 @@ def run_search_part(
     t_load = time.perf_counter() - t0
     gsd = gsd_in_map_units(meta.get("gsd_m"), source.crs_wkt)
     factors = feature_scales(gsd, source.gsd_m, reg_conf.get("unknown_gsd_factors", [1.0]))
-    rows = part_rows(u8.shape[0], int(reg_conf.get("parts", 2)), part)
     t1 = time.perf_counter()
-    qf = query_features(u8, rows, factors, source.features_conf)
-    t_feat = time.perf_counter() - t1
-    log.info("part %d rows %s: %d query features at factors %s", part, rows, len(qf), factors)
-    res = {"part": part, **search_part(qf, source, reg_conf, gsd, seed + 1000 * part)}
-    res["timings_s"] = {"load": t_load, "features": t_feat, "search": res["seconds"]}
+    res = search_one_part(u8, part, source, reg_conf, gsd, factors, seed)
+    res["timings_s"] = {"load": t_load, "features_and_search": time.perf_counter() - t1}
     res["seconds"] = time.perf_counter() - t0
     write_json(out_json, res)
     return res
+
+
+def search_one_part(
+    u8: np.ndarray,
+    part: int,
+    source: MapSource,
+    reg_conf: dict[str, Any],
+    gsd: float | None,
+    factors: list[float],
+    seed: int,
+    full: QueryFeatures | None = None,
+) -> dict[str, Any]:
+    """Part ``part`` of the split plan: its own rows when the query is split; when it is not,
+    part 0 searches the whole query and the other parts record that they were merged into it.
+    ``full``: the whole query's features when already computed."""
+    h, w = u8.shape[-2:]
+    if full is None:
+        full = query_features(u8, (0, h), factors, source.features_conf)
+    plan = split_plan(len(full), w, h, max(factors), int(reg_conf.get("parts", 2)), reg_conf)
+    log.info("part %d: %s", part, plan["reason"])
+    n_s = search_count(plan)
+    if plan["parts"] == 1 and part == 0:
+        # the whole query; when it fails, each part in turn (in this job: the others are idle)
+        res = search_part(full, source, reg_conf, gsd, seed, n_s)
+        tried = [res]
+        for k, name in enumerate(plan["searches"][1:]):
+            if res["accepted"]:
+                break
+            rows = part_rows(h, int(plan["configured_parts"]), k)
+            qf = query_features(u8, rows, factors, source.features_conf)
+            log.info("whole query not found: %s rows %s, %d features", name, rows, len(qf))
+            res = search_part(qf, source, reg_conf, gsd, seed + 1000 * (k + 1), n_s)
+            tried.append(res)
+        summary = [{"rows": r["rows"], "accepted": r["accepted"], "inliers": r["inliers"],
+                    "candidates_tried": r["candidates_tried"]} for r in tried]  # fmt: skip
+        res["candidates_tried"] = int(sum(r["candidates_tried"] for r in tried))
+        res["candidates"] = [c for r in tried for c in r["candidates"]]  # the whole query's first
+        return {"part": part, "split": plan, **res, "searched": summary, "whole_query": True}
+    if plan["parts"] == 1 and part > 0:
+        return {
+            "part": part, "split": plan, "skipped": True, "rows": [0, 0], "width": w,
+            "query_features": 0, "candidates_tried": 0, "candidates": [], "accepted": False,
+            "homography": None, "inliers": 0, "seconds": 0.0,
+            "reason": "merged into part 0 (whole query searched)",
+        }  # fmt: skip
+    qf = query_features(u8, part_rows(h, plan["parts"], part), factors, source.features_conf)
+    log.info("part %d rows %s: %d query features at factors %s", part,
+             [qf.origin[1], qf.origin[1] + qf.height], len(qf), factors)  # fmt: skip
+    res = search_part(qf, source, reg_conf, gsd, seed + 1000 * part, n_s)
+    return {"part": part, "split": plan, **res}

@@ -57,6 +57,7 @@ rule fuse_parts:
         index=REG_INDEX_META,
         grid=REG_GRID,
         dsm=REG_DSM,
+        ortho="results/map/mosaic/ortho.vrt",
         truth=reg_truth,
     output:
         registration="results/queries/{name}/registration_global.json",

@@ -1,0 +1,245 @@
+"""Area-based cross-spectral search: CFOG channels correlated by FFT over rotations.
+
+The query (brought to the map's feature GSD) and a map window are turned into oriented-gradient
+channels (georeg.register.refine.cfog, which do not depend on which band made them), both are
+shrunk so that the query is at most ``max_side`` pixels, and the query is correlated with the
+window by FFT at every rotation step. The peak is judged against the distribution of every other
+rotation and offset: a robust z-score (median / MAD of all scores) turned into an a-contrario
+number of false alarms with a Gaussian tail, counted over all rotations and offsets.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from scipy.stats import norm
+
+from georeg.register import acceptance, crossspectral, matching
+from georeg.register.refine import cfog
+from georeg.register.search import MapSource, QueryFeatures
+
+
+@dataclass
+class DenseResult:
+    """Best rotation and offset: ``S`` maps query px (col, row) to map window px (col, row)."""
+
+    S: np.ndarray  # 3 x 3 similarity, query px -> map window px
+    angle_deg: float
+    score: float  # mean channel correlation per valid query pixel at the peak
+    z: float  # robust z-score of the peak among all rotations and offsets
+    log10_nfa: float  # log10(tests) + log10 P(Z > z)
+    second_ratio: float  # peak / best score at another rotation (> 20 deg away) or offset
+    tests: int
+
+
+def _shrink(img: np.ndarray, valid: np.ndarray, f: float) -> tuple[np.ndarray, np.ndarray]:
+    if abs(f - 1.0) < 1e-6:
+        return img.astype(np.float32), valid
+    size = (max(1, round(img.shape[1] * f)), max(1, round(img.shape[0] * f)))
+    interp = cv2.INTER_AREA if f < 1 else cv2.INTER_LINEAR
+    out = cv2.resize(img.astype(np.float32), size, interpolation=interp)
+    m = cv2.resize(valid.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+    return out, m
+
+
+def _inner(valid: np.ndarray, margin: int = 4) -> np.ndarray:
+    """``valid`` eroded by ``margin`` px: where the channels owe nothing to a nodata border."""
+    k = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
+    return cv2.erode(valid.astype(np.uint8), k, borderValue=0) > 0
+
+
+def _scale(f: float) -> np.ndarray:
+    """Pixel-centre scaling by f as a 3 x 3 matrix: u' = (u + 0.5) f - 0.5."""
+    return np.array([[f, 0, 0.5 * f - 0.5], [0, f, 0.5 * f - 0.5], [0, 0, 1.0]])
+
+
+def dense_search(
+    q_u8: np.ndarray,
+    factor: float,
+    m_u8: np.ndarray,
+    step_deg: float = 10.0,
+    max_side: int = 96,
+    orientations: int = 9,
+    min_overlap: float = 0.9,
+) -> DenseResult | None:
+    """Find the query (uint8, 0 = nodata; ``factor`` = query GSD / map GSD) in the map window
+    ``m_u8`` (uint8, 0 = nodata) over rotations of ``step_deg``. None when nothing overlaps."""
+    qv0 = q_u8 > 0
+    q, qv = _shrink(q_u8, qv0, factor)
+    s = min(1.0, max_side / max(q.shape))
+    q, qv = _shrink(q, qv, s)
+    m, mv = _shrink(m_u8, m_u8 > 0, s)
+    if qv.sum() < 64 or mv.sum() < 64:
+        return None
+    h, w = q.shape
+    D = int(math.ceil(math.hypot(h, w))) + 2
+    # the query may stick out of the window by up to half its rotated side
+    pd = D // 2
+    m = np.pad(m, pd)
+    mv = np.pad(mv, pd)
+    M = cfog(m, mv, orientations)
+    M[:, ~_inner(mv)] = 0.0  # no nodata-border gradients: they would align with the query's
+    P, Q = M.shape[1] + D, M.shape[2] + D
+    FM = np.fft.rfft2(M, s=(P, Q))
+    FMv = np.fft.rfft2(mv.astype(np.float32), s=(P, Q))
+    # offsets (dy, dx) with the canvas inside the padded map: the map window starts at 0
+    oy, ox = M.shape[1] - D + 1, M.shape[2] - D + 1
+    if oy < 1 or ox < 1:
+        return None
+    angles = np.arange(0.0, 360.0, step_deg)
+    scores = np.full((len(angles), oy, ox), -np.inf, np.float32)
+    mats = []
+    for k, a in enumerate(angles):
+        A = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), float(a), 1.0)
+        A[:, 2] += ((D - 1) / 2 - (w - 1) / 2, (D - 1) / 2 - (h - 1) / 2)
+        qr = cv2.warpAffine(q, A, (D, D), flags=cv2.INTER_LINEAR)
+        vr = cv2.warpAffine(qv.astype(np.uint8), A, (D, D), flags=cv2.INTER_NEAREST) > 0
+        C = cfog(qr, vr, orientations)
+        vr = _inner(vr)
+        C[:, ~vr] = 0.0
+        n = float(vr.sum())
+        C[:, vr] -= C[:, vr].mean(axis=1, keepdims=True)  # zero mean: chance offsets score ~0
+        FQ = np.fft.rfft2(C, s=(P, Q))
+        corr = np.fft.irfft2((FM * np.conj(FQ)).sum(0), s=(P, Q))[:oy, :ox]
+        cnt = np.fft.irfft2(FMv * np.conj(np.fft.rfft2(vr.astype(np.float32), s=(P, Q))), s=(P, Q))
+        ok = cnt[:oy, :ox] >= min_overlap * n
+        scores[k] = np.where(ok, corr / max(n, 1.0), -np.inf)
+        mats.append(np.vstack([A, [0, 0, 1]]))
+    fin = np.isfinite(scores)
+    if not fin.any():
+        return None
+    k, dy, dx = np.unravel_index(int(np.argmax(np.where(fin, scores, -np.inf))), scores.shape)
+    peak = float(scores[k, dy, dx])
+    vals = scores[fin].astype(np.float64)
+    med = float(np.median(vals))
+    mad = 1.4826 * float(np.median(np.abs(vals - med))) + 1e-12
+    z = (peak - med) / mad
+    # the best score elsewhere: other rotations (> 20 deg away) or offsets > 3 px away
+    dang = np.abs((angles - angles[k] + 180.0) % 360.0 - 180.0)
+    other = scores.copy()
+    near = dang <= 20.0
+    yy, xx = np.ogrid[:oy, :ox]
+    disc = (yy - dy) ** 2 + (xx - dx) ** 2 <= 9
+    other[near] = np.where(disc[None], -np.inf, other[near])
+    second = float(np.max(np.where(np.isfinite(other), other, -np.inf)))
+    tests = int(fin.sum())
+    log_nfa = math.log10(tests) + float(norm.logsf(z)) / math.log(10.0)
+    # query px -> shrunken query -> canvas -> shrunken map (+ offset) -> map window px
+    T = np.array([[1.0, 0, dx - pd], [0, 1.0, dy - pd], [0, 0, 1]])
+    S = np.linalg.inv(_scale(s)) @ T @ mats[k] @ _scale(s) @ _scale(factor)
+    return DenseResult(S, float(angles[k]), peak, float(z), log_nfa,
+                       peak / second if second > 0 else math.inf, tests)  # fmt: skip
+
+
+DENSE_DEFAULTS: dict[str, Any] = {
+    "enabled": False,
+    "step_deg": 10.0,
+    "max_side": 96,
+    "radius_px": 24.0,
+    "max_windows": 3,
+}
+
+
+def dense_conf(reg_conf: dict[str, Any] | None) -> dict[str, Any]:
+    """``register.dense`` with defaults."""
+    return {**DENSE_DEFAULTS, **((reg_conf or {}).get("dense") or {})}
+
+
+def window_u8(gray: np.ndarray) -> np.ndarray:
+    """A float map window (NaN = nodata) stretched to uint8 1..255, 0 = nodata."""
+    ok = np.isfinite(gray)
+    out = np.zeros(gray.shape, np.uint8)
+    if ok.sum() < 16:
+        return out
+    lo, hi = np.percentile(gray[ok], [1.0, 99.0])
+    out[ok] = np.round(np.clip((gray[ok] - lo) / max(hi - lo, 1e-6), 0, 1) * 254 + 1).astype(
+        np.uint8
+    )
+    return out
+
+
+def dense_register(
+    q_u8: np.ndarray,
+    qf: QueryFeatures,
+    q_gsd: float,
+    win: np.ndarray,
+    win_to_map: np.ndarray,
+    source: MapSource,
+    conf: dict[str, Any],
+    seed: int = 0,
+    n_windows: int = 1,
+) -> dict[str, Any]:
+    """Dense search of the query in one map window, then a guided feature re-match around the
+    peak (radius ``radius_px`` feature px, then 8), fitted and decided like any candidate.
+
+    ``q_u8``: the query band (or bands, the first used); ``win``: the window (uint8, 0 = nodata); ``win_to_map``: 3 x 3, window pixel centre
+    (col, row) -> map (x, y); ``q_gsd``: query GSD in map units. The NFA counts every rotation
+    step and every disc-sized place of the ``n_windows`` windows searched.
+    """
+    t0 = time.perf_counter()
+    dc = dense_conf(conf)
+    win_px = float(np.sqrt(abs(np.linalg.det(win_to_map[:2, :2]))))
+    rec: dict[str, Any] = {"method": "dense", "accepted": False, "homography": None, "inliers": 0}
+    q0 = q_u8 if q_u8.ndim == 2 else q_u8[0]  # several bands: the first
+    r = dense_search(q0, q_gsd / win_px, win, float(dc["step_deg"]), int(dc["max_side"]))
+    if r is None:
+        rec.update(reason="no overlap", seconds=time.perf_counter() - t0)
+        return rec
+    rec.update(angle_deg=r.angle_deg, dense_z=r.z, dense_log10_nfa=r.log10_nfa,
+               dense_peak_ratio=r.second_ratio)  # fmt: skip
+    H = win_to_map @ r.S
+    g = source.gsd_m
+    corners = matching.apply_h(H, np.array([[0, 0], [qf.width, 0], [0, qf.height],
+                                            [qf.width, qf.height]], float))  # fmt: skip
+    pad = float(dc["radius_px"]) * g
+    bounds = (corners[:, 0].min() - pad, corners[:, 1].min() - pad,
+              corners[:, 0].max() + pad, corners[:, 1].max() + pad)  # fmt: skip
+    ids = source.features_in(bounds)
+    if len(ids) < 8 or len(qf) < 4:
+        rec.update(reason="too few features", seconds=time.perf_counter() - t0)
+        return rec
+    mxy, mdesc = source.take(ids)
+    knn = matching.knn2(mdesc)
+    q_xy, q_desc, q_resp = qf.xy, qf.desc, qf.response
+    if crossspectral.matcher_conf(conf).get("polarity") == "both":
+        q_xy, q_desc, q_resp = crossspectral.add_polarity(q_xy, q_desc, q_resp)
+    ratio = float(crossspectral.matcher_conf(conf).get("guided_ratio", 0.8))
+    h_w, w_w = win.shape
+    win_area = h_w * w_w * (win_px / g) ** 2
+    n_rot = int(round(360.0 / float(dc["step_deg"])))
+    best = None
+    for radius_px in (float(dc["radius_px"]), 8.0):
+        disc = math.pi * radius_px**2
+        gm = crossspectral.guided_matches(q_xy, q_desc, H, mxy, mdesc, radius_px * g, ratio, knn)
+        if len(gm) < 4:
+            break
+        fit = matching.fit_homography(gm.q_xy, gm.m_xy, g, conf.get("ransac", {}), seed)
+        if fit.H is None:
+            break
+        n_tests = n_rot * max(1, int(math.ceil(win_area / disc))) * max(1, n_windows)
+        dec = acceptance.decide(
+            fit.H, fit.residual_px, fit.n_inliers, disc, qf.width, qf.height, q_gsd,
+            conf.get("acceptance", {}), n_candidates=n_tests, inlier_q_xy=gm.q_xy[fit.inliers],
+        )  # fmt: skip
+        if best is not None and (not dec["accepted"] or fit.n_inliers <= best[1].n_inliers):
+            break  # the refinement pass only replaces an accepted fit by a better one
+        best = (gm, fit, dec)
+        H = fit.H
+        if not dec["accepted"]:
+            break
+    if best is not None:
+        gm, fit, dec = best
+        inl = fit.inliers
+        rec.update(
+            accepted=bool(dec["accepted"]), homography=fit.H.tolist(), inliers=fit.n_inliers,
+            matches=len(gm), residual_px=fit.rms_px, log10_nfa=dec.get("log10_nfa"),
+            reason=dec.get("reason", ""), region=[float(v) for v in bounds],
+            inlier_query_xy=gm.q_xy[inl].tolist(), inlier_map_xy=gm.m_xy[inl].tolist(),
+        )  # fmt: skip
+    rec["seconds"] = time.perf_counter() - t0
+    return rec
