@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import rasterio
 import rasterio.enums
 from rasterio.crs import CRS
 from rasterio.enums import Resampling
@@ -84,6 +85,10 @@ class MapGrid:
     @property
     def orthophotos(self) -> list[str]:
         return [o["path"] for o in self.data["orthophotos"]]
+
+
+#: GDAL block cache (MB) while the grid is built (decimated reads only)
+GRID_CACHE_MB = 64
 
 
 def tile_id(row: int, col: int) -> str:
@@ -314,7 +319,10 @@ def write_grid(
     map_crs: str | None = None,
 ) -> dict[str, Any]:
     """Build the grid and write it as JSON, atomically."""
-    grid = build_grid(orthophotos, tile_size_px, tile_overlap_px, map_crs)
+    # decimated mask reads of a large mosaic fill GDAL's block cache (5 % of the RAM by default):
+    # 875 MB peak on a 268 Mpx / 64-file VRT, 147 MB with 64 MB and no slower
+    with rasterio.Env(GDAL_CACHEMAX=GRID_CACHE_MB):
+        grid = build_grid(orthophotos, tile_size_px, tile_overlap_px, map_crs)
     with atomic_path(out) as tmp:
         tmp.write_text(json.dumps(grid, indent=1) + "\n")
     return grid
