@@ -187,3 +187,30 @@ def test_outputs_of_the_workflow_are_not_checked():
            "queries": {"d": {"image": "results/demo/queries/demo.hdr", "band": "1200nm"}}}  # fmt: skip
     assert check_inputs(cfg, generated="results") == []
     assert len(check_inputs(cfg, generated=None)) == 3
+
+
+@pytest.mark.shared
+def test_real_enmap_cube_as_orthophoto_takes_its_visible_bands(shared_data, tmp_path):
+    """224 float bands, NaN nodata, wavelengths in the descriptions ('647.34 nm')."""
+    src = shared_data / "enmap_potsdam" / "enmap_potsdam_mosaic_subset.tif"
+    with rasterio.open(src) as ds:
+        bands, how = visible_bands(ds)
+        wl = [float(ds.descriptions[b - 1].split()[0]) for b in bands]
+        valid = np.isfinite(ds.read(bands[0]))
+    assert "wavelength" in how and abs(wl[0] - 650) < 10 and abs(wl[1] - 550) < 10
+    assert abs(wl[2] - 470) < 10
+    write_grid(tmp_path / "grid.json", [str(src)], 256, 16)
+    make_ortho_tile(tmp_path / "grid.json", "r000_c000", tmp_path / "t.tif")
+    with rasterio.open(tmp_path / "t.tif") as ds:
+        mask = ds.dataset_mask() > 0
+        rgb = ds.read()
+    assert np.array_equal(mask, valid[: mask.shape[0], : mask.shape[1]])  # NaN -> masked
+    assert rgb[:, mask].std(axis=1).min() > 5  # stretched into the 8 bits, not flat
+
+
+@pytest.mark.shared
+def test_real_sentinel2_band_in_lon_lat_is_refused_with_its_utm_zone(shared_data):
+    b04 = sorted((shared_data / "swir_dates" / "oscd_dev" / "abudhabi" / "imgs_1").glob("*B04.tif"))[0]
+    problems = check_inputs({"map": {"orthophoto": str(b04)}})
+    assert len(problems) == 1 and b04.name in problems[0], problems
+    assert "EPSG:32640" in problems[0]  # Abu Dhabi, 54.4 deg E: UTM zone 40N
