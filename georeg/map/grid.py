@@ -164,9 +164,9 @@ def build_grid(
     """
     if not orthophotos:
         raise ConfigError("map.orthophoto: at least one orthophoto is needed")
-    first_crs = None
     with open_raster(orthophotos[0]) as ds0:
         first_crs = ds0.crs
+        bands, how = visible_bands(ds0)
     crs = CRS.from_user_input(map_crs) if map_crs else first_crs
     infos = [_source_info(p, crs) for p in orthophotos]
     for inf in infos[1:]:
@@ -176,8 +176,6 @@ def build_grid(
                 f"has {inf['count']} bands but {infos[0]['path']} has {infos[0]['count']}",
                 "all orthophotos must have the same bands",
             )
-    with open_raster(orthophotos[0]) as ds0:
-        bands, how = visible_bands(ds0)
     stretch = map_stretch(orthophotos, bands)
     log.info(
         "orthophoto bands %s (%s), %s",
@@ -203,7 +201,7 @@ def build_grid(
     transform = Affine(xres, 0.0, left, 0.0, -yres, top)
 
     tiles = tile_layout(width, height, tile_size_px, tile_overlap_px)
-    valid = _valid_tiles(tiles, orthophotos, crs, transform)
+    valid = _valid_tiles(tiles, orthophotos, crs, transform, bands)
     kept = [t for t, ok in zip(tiles, valid, strict=True) if ok]
     log.info(
         "map grid %d x %d px at %.4g x %.4g %s: %d tiles, %d kept (%d without valid pixels)",
@@ -269,7 +267,11 @@ def _overlaps(ds: Any, crs: CRS, bounds: tuple[float, ...]) -> bool:
 
 
 def _valid_tiles(
-    tiles: list[Tile], orthophotos: Sequence[str], crs: CRS, transform: Affine
+    tiles: list[Tile],
+    orthophotos: Sequence[str],
+    crs: CRS,
+    transform: Affine,
+    bands: list[int] | None = None,
 ) -> list[bool]:
     """Decimated per-tile check for any valid orthophoto pixel (cheap even for huge mosaics)."""
     valid = [False] * len(tiles)
@@ -288,7 +290,7 @@ def _valid_tiles(
                 shape = (max(1, th // f), max(1, tw // f))
                 if same_grid(ds, crs, transform):  # aligned: decimated read of the window
                     win = Window(*_tile_win(ds, transform, t))
-                    m = read_masks(ds, window=win, out_shape=shape, path=path)
+                    m = read_masks(ds, window=win, out_shape=shape, path=path, indexes=bands)
                 else:
                     dtr = (
                         transform
@@ -296,7 +298,7 @@ def _valid_tiles(
                         @ Affine.scale(tw / shape[1], th / shape[0])
                     )
                     with on_grid(ds, crs, dtr, shape[1], shape[0], Resampling.nearest) as (src, _):
-                        m = read_masks(src, path=path)
+                        m = read_masks(src, path=path, indexes=bands)
                 valid[k] = bool(m.any())
     return valid
 
@@ -358,12 +360,13 @@ def make_ortho_tile(
             with on_grid(ds, grid.crs, tr, tw, th, Resampling[resampling]) as (src, win):
                 boundless = src is ds
                 arr = read(
-                    src, window=win, boundless=boundless, fill_value=src_nodata or 0, path=path
-                )[[b - 1 for b in bands]]
+                    src, window=win, boundless=boundless, fill_value=src_nodata or 0, path=path,
+                    indexes=list(bands),
+                )
                 m = (
-                    read_masks(src, window=win, path=path)
+                    read_masks(src, window=win, path=path, indexes=list(bands))
                     if not boundless
-                    else _boundless_mask(ds, win, path)
+                    else _boundless_mask(ds, win, path, list(bands))
                 )
             take = (m > 0) & ~valid
             if stretch is not None:
@@ -376,14 +379,14 @@ def make_ortho_tile(
     log.info("tile %s: %d x %d px, %.1f%% valid", tile, tw, th, 100.0 * valid.mean())
 
 
-def _boundless_mask(ds: Any, win: Window, path: str) -> np.ndarray:
+def _boundless_mask(ds: Any, win: Window, path: str, bands: list[int] | None = None) -> np.ndarray:
     """Dataset mask of a window that may extend beyond the dataset (outside = 0)."""
     out = np.zeros((int(win.height), int(win.width)), dtype=np.uint8)
     c0, r0 = int(win.col_off), int(win.row_off)
     cc0, rr0 = max(c0, 0), max(r0, 0)
     cc1, rr1 = min(c0 + int(win.width), ds.width), min(r0 + int(win.height), ds.height)
     if cc1 > cc0 and rr1 > rr0:
-        m = read_masks(ds, window=Window(cc0, rr0, cc1 - cc0, rr1 - rr0), path=path)
+        m = read_masks(ds, window=Window(cc0, rr0, cc1 - cc0, rr1 - rr0), path=path, indexes=bands)
         out[rr0 - r0 : rr1 - r0, cc0 - c0 : cc1 - c0] = m
     return out
 

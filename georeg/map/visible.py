@@ -84,8 +84,8 @@ def map_stretch(paths: Sequence[str], bands: Sequence[int]) -> list[float] | Non
                 return None
             f = max(1, math.ceil(max(ds.width, ds.height) / SAMPLE_PX))
             shape = (max(1, ds.height // f), max(1, ds.width // f))
-            arr = read(ds, out_shape=(ds.count, *shape), path=path)[[b - 1 for b in bands]]
-            valid = (read_masks(ds, out_shape=shape, path=path) > 0) & np.isfinite(arr).all(0)
+            arr = read(ds, out_shape=(len(bands), *shape), path=path, indexes=list(bands))
+            valid = (read_masks(ds, out_shape=shape, path=path, indexes=list(bands)) > 0) & np.isfinite(arr).all(0)
             samples.append(arr[:, valid].astype(np.float64).ravel())
     vals = np.concatenate(samples) if samples else np.empty(0)
     if vals.size == 0:
