@@ -44,8 +44,6 @@ def _write(path: Path, bands: list[np.ndarray], dtype: str, crs: str | None = UT
         transform=from_origin(500000, 3760000, 1, 1), **kw,
     ) as ds:  # fmt: skip
         ds.write(arr)
-        for i, d in enumerate(kw.get("descriptions_", []) or [], 1):
-            ds.set_band_description(i, d)
     return path
 
 

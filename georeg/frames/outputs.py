@@ -52,6 +52,17 @@ def crs_urn(crs: pyproj.CRS) -> str | None:
     return f"urn:ogc:def:crs:EPSG::{epsg}" if epsg else None
 
 
+def write_feature_collection(path: str | Path, feats: list[dict], crs: pyproj.CRS) -> None:
+    """A GeoJSON FeatureCollection in the map CRS: the GeoJSON 2008 ``crs`` member when the CRS
+    has a URN, the WKT in the properties; written atomically."""
+    fc: dict[str, Any] = {"type": "FeatureCollection", "features": feats,
+                          "properties": {"crs_wkt": crs.to_wkt()}}  # fmt: skip
+    urn = crs_urn(crs)
+    if urn:
+        fc["crs"] = {"type": "name", "properties": {"name": urn}}
+    write_text(path, json.dumps(fc, indent=1))
+
+
 def write_geojson(path: str | Path, poses: list[dict], crs_wkt: str) -> None:
     """Cameras (Point, x y z) and ground footprints (Polygon) in the map CRS (GeoJSON 2008 `crs`
     member, like the products' footprint.geojson; WKT in properties)."""
@@ -68,12 +79,7 @@ def write_geojson(path: str | Path, poses: list[dict], crs_wkt: str) -> None:
             ring = [list(map(float, v)) for v in fp] + [list(map(float, fp[0]))]
             feats.append({"type": "Feature", "properties": {**props, "kind": "footprint"},
                           "geometry": {"type": "Polygon", "coordinates": [ring]}})  # fmt: skip
-    fc: dict[str, Any] = {"type": "FeatureCollection", "features": feats,
-                          "properties": {"crs_wkt": crs.to_wkt()}}  # fmt: skip
-    urn = crs_urn(crs)
-    if urn:
-        fc["crs"] = {"type": "name", "properties": {"name": urn}}
-    write_text(path, json.dumps(fc, indent=1))
+    write_feature_collection(path, feats, crs)
 
 
 def write_kml(path: str | Path, poses: list[dict], crs_wkt: str) -> None:

@@ -429,7 +429,7 @@ def make_elevation_tile(
         log.info("tile %s: map without elevation (no map.lidar, no map.dem): heights nodata", ortho_tile)
         nan = np.full((grid.height, grid.width), np.nan, np.float32)
         surf = {"dsm": nan, "dtm": nan.copy(), "ndsm": nan.copy(), "density": np.zeros_like(nan)}
-        pts = dem_points(grid, surf)
+        pts = lidar.Points.empty()
     rgb = sample_rgb(ortho_tile, pts)
     ok = np.isfinite(surf["dsm"])
     log.info(

@@ -10,7 +10,6 @@ that reads them, with the same kind of message.
 
 from __future__ import annotations
 
-import glob
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -21,6 +20,7 @@ import pyproj
 from georeg.io.errors import GeoregError
 from georeg.io.query import open_query
 from georeg.io.raster import open_raster
+from georeg.io.video import frame_images
 from georeg.map import lidar
 from georeg.register.band import parse_band_spec, resolve_band
 
@@ -122,7 +122,7 @@ class _Checker:
             for it in items:
                 if self.made(it):
                     continue
-                hits = sorted(glob.glob(it)) if any(ch in it for ch in "*?[") else [it]
+                hits = frame_images([it])
                 if not hits:
                     self.add(f"{key}.images: {it}: no file matches")
                 for p in hits:

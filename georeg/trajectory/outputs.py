@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -26,7 +25,7 @@ from xml.sax.saxutils import escape
 import numpy as np
 import pyproj
 
-from georeg.frames.outputs import crs_urn
+from georeg.frames.outputs import write_feature_collection
 from georeg.io.atomic import atomic_path, write_text
 
 
@@ -98,12 +97,7 @@ def write_geojson(path: str | Path, poses: list[dict], crs_wkt: str, z_ground: f
                  "heading_deg": round(h, 3), "pitch_deg": round(pt, 3), "roll_deg": round(rl, 3)}  # fmt: skip
         feats.append({"type": "Feature", "properties": props,
                       "geometry": {"type": "LineString", "coordinates": [C.tolist(), g.tolist()]}})  # fmt: skip
-    fc: dict[str, Any] = {"type": "FeatureCollection", "features": feats,
-                          "properties": {"crs_wkt": crs.to_wkt()}}  # fmt: skip
-    urn = crs_urn(crs)
-    if urn:
-        fc["crs"] = {"type": "name", "properties": {"name": urn}}
-    write_text(path, json.dumps(fc, indent=1))
+    write_feature_collection(path, feats, crs)
 
 
 def write_kml(path: str | Path, poses: list[dict], crs_wkt: str, z_ground: float,

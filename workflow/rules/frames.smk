@@ -14,14 +14,8 @@ rule localize_frames:
         index=f"{INDEX_DIR}/meta.json",
         ortho="results/map/mosaic/ortho.vrt",
         dsm=frame_dsm,
-        laz=lambda wc: (
-            expand("results/map/tiles/{tile}/points.laz", tile=index_tile_ids())
-            if FRAME_LOC.get("render_source") == "points"
-            else []
-        ),
-        truth=lambda wc: [config["frames"][wc.fset]["truth"]]
-        if config["frames"][wc.fset].get("truth")
-        else [],
+        laz=lambda wc: frame_laz_inputs(),
+        truth=lambda wc: frame_set_truth(wc.fset),
     output:
         poses="results/frames/{fset}/poses.json",
         geojson="results/frames/{fset}/cameras.geojson",
