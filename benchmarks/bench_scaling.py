@@ -19,7 +19,9 @@ job wall and CPU, the largest peak RSS of any job, and per-tile / per-Mpx costs.
 
 Results are appended to ``benchmarks/out/bench_scaling.jsonl`` (one record per map size) and
 printed as the Markdown table of docs/SCALING.md. Generated maps and runs are deleted after each
-size unless ``--keep``.
+size unless ``--keep``. A long run that was stopped (the 1 Gpx map takes hours) continues where it
+stopped with ``--resume`` (same ``--work``): the map is not generated again, Snakemake keeps its
+finished jobs, and the rusage log and the wall time add up over the sessions.
 """
 
 from __future__ import annotations
@@ -182,27 +184,39 @@ def run_size(size_m: float, args) -> dict:
     hook_dir.mkdir(parents=True, exist_ok=True)
     (hook_dir / "sitecustomize.py").write_text(HOOK)
     log = work / f"rusage_{tag}.jsonl"
-    log.unlink(missing_ok=True)
-    for d in (mapdir, rundir):
-        shutil.rmtree(d, ignore_errors=True)
-    t0 = time.time()
-    gen = [sys.executable, "-m", "georeg.demo.largemap", "--out", str(mapdir), "--size-m", str(size_m),
-           "--workers", str(args.cores), "--chunk-px", str(args.chunk_px),
-           "--lidar-density", str(args.lidar_density)]  # fmt: skip
-    subprocess.run(gen, check=True, env=_env(hook_dir, log, src, "generate"), cwd=src,
-                   stdout=subprocess.DEVNULL)  # fmt: skip
-    # the generator's worker processes exit via os._exit (no atexit): the parent's record holds
-    # them as RUSAGE_CHILDREN (CPU summed, peak RSS = the largest child)
-    t_gen = time.time() - t0
+    gen_done = mapdir / "generate_wall_s.txt"
+    resume = args.resume and gen_done.exists()
+    if not resume:  # a fresh start; with --resume after a stop, the map and the run are kept
+        log.unlink(missing_ok=True)
+        for d in (mapdir, rundir):
+            shutil.rmtree(d, ignore_errors=True)
+        t0 = time.time()
+        gen = [sys.executable, "-m", "georeg.demo.largemap", "--out", str(mapdir),
+               "--size-m", str(size_m), "--workers", str(args.cores), "--chunk-px", str(args.chunk_px),
+               "--lidar-density", str(args.lidar_density)]  # fmt: skip
+        subprocess.run(gen, check=True, env=_env(hook_dir, log, src, "generate"), cwd=src,
+                       stdout=subprocess.DEVNULL)  # fmt: skip
+        # the generator's worker processes exit via os._exit (no atexit): the parent's record
+        # holds them as RUSAGE_CHILDREN (CPU summed, peak RSS = the largest child)
+        gen_done.write_text(f"{time.time() - t0:.1f}\n")
+    t_gen = float(gen_done.read_text())
     cfg = rundir / "bench.yaml"
-    rundir.mkdir(parents=True)
+    rundir.mkdir(parents=True, exist_ok=True)
     cfg.write_text((mapdir / "map.yaml").read_text()
                    + f"vocabulary:\n  k: {args.k}\n  sample_size: {args.sample_size}\n")  # fmt: skip
     smk = [sys.executable, "-m", "snakemake", *_targets(), "-s", str(src / "Snakefile"),
            "--cores", str(args.cores), "-d", str(rundir), "--configfile", str(cfg)]  # fmt: skip
+    if resume:  # a stopped run: release its lock, redo its incomplete jobs, keep the finished ones
+        subprocess.run(
+            [*smk, "--unlock"], cwd=src, capture_output=True, env=_env(hook_dir, log, src)
+        )
+        smk.append("--rerun-incomplete")
     t1 = time.time()
     p = subprocess.run(smk, env=_env(hook_dir, log, src), cwd=src, capture_output=True, text=True)
     t_smk = time.time() - t1
+    wall_file = rundir / "snakemake_wall_s.txt"  # summed over the sessions a resumed run took
+    t_smk += float(wall_file.read_text()) if resume and wall_file.exists() else 0.0
+    wall_file.write_text(f"{t_smk:.1f}\n")
     if p.returncode:
         sys.stderr.write(p.stdout[-4000:] + p.stderr[-4000:])
         raise SystemExit(f"snakemake failed for size {size_m}")
@@ -372,6 +386,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--k", type=int, default=1000, help="vocabulary size (workflow default)")
     p.add_argument("--sample-size", type=int, default=500000)
     p.add_argument("--keep", action="store_true", help="keep the generated maps and runs")
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue a stopped run in --work (same map, same workflow snapshot)",
+    )
     p.add_argument("--out", default=str(OUT))
     p.add_argument("--table", help="only print the tables and the estimate of this JSON-lines file")
     p.add_argument("--nodes", type=int, nargs="+", default=[1, 10, 50])
@@ -382,7 +401,8 @@ def main(argv: list[str] | None = None) -> int:
         print()
         print(estimate(recs, nodes=a.nodes))
         return 0
-    a.src = str(snapshot(Path(a.work)))
+    src = Path(a.work) / "src"
+    a.src = str(src if a.resume and (src / "Snakefile").exists() else snapshot(Path(a.work)))
     recs = []
     for size in a.sizes_m:
         rec = run_size(size, a)
