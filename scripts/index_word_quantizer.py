@@ -5,7 +5,7 @@ from georeg.io.scripting import run
 
 
 def main(smk):
-    save_word_quantizer(smk.input.centroids, smk.output[0])
+    save_word_quantizer(smk.input.centroids, smk.output[0], ef_search=int(smk.params.ef_search))
 
 
 run(snakemake, main)  # noqa: F821

@@ -99,3 +99,25 @@ def test_quantizer_file_must_match_vocabulary(tiles, tmp_path):
     cent = np.load(tiles["cent"])
     with pytest.raises(InputError, match="words of dim"):
         WordQuantizer.load(tmp_path / "q.faiss", cent[:-1])
+
+
+def test_index_carries_the_saved_quantizer(tiles, tmp_path):
+    """build_index copies rule word_quantizer's structure; queries load it (not rebuild it), with
+    the efSearch it was saved with."""
+    dirs, cent = tiles["dirs"], tiles["cent"]
+    qpath = tmp_path / "quantizer.faiss"
+    save_word_quantizer(cent, qpath, "hnsw", ef_search=24)
+    words = [assign_tile_words(d, cent, tmp_path / "w" / f"{d.name}.npy", qpath) for d in dirs]
+    assert sum(map(len, words)) > 1000
+    files = sorted((tmp_path / "w").glob("*.npy"))
+    idx = build_from_grid(
+        tiles["tmp"] / "grid.json", dirs, cent, tmp_path / "map", files, quantizer_file=qpath
+    )
+    assert (tmp_path / "map" / "quantizer.faiss").exists()
+    q = MapIndex.load(tmp_path / "map").quantizer
+    assert q.method == "hnsw" and q._index.hnsw.efSearch == 24  # 200 words: flat if rebuilt
+    d = np.load(dirs[1] / "desc.npy")
+    np.testing.assert_array_equal(q.words(d), np.load(tmp_path / "w" / f"{dirs[1].name}.npy"))
+    # an index without the file still answers (the structure is built from its centroids)
+    (tmp_path / "map" / "quantizer.faiss").unlink()
+    assert MapIndex.load(tmp_path / "map").quantizer.method == "flat"

@@ -3,7 +3,9 @@
 On-disk format (``results/index/map/``, documented in docs/INDEX_FORMAT.md): plain ``.npy``
 arrays, memory-mapped on load, and a ``meta.json``. ``MapIndex`` is the API the registration
 stage uses: ``quantize`` (nearest visual words), ``rank_tiles`` / ``rank_regions`` (TF-IDF
-retrieval), ``features_in`` (features in a map rectangle) and ``knn`` (two nearest map features).
+retrieval), ``knn_words`` (approximate nearest map features over the whole map, through the
+words' inverted file), ``features_in`` (features in a map rectangle) and ``knn`` (two nearest
+map features).
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from georeg.index.features import DESC_DIM, DESC_SCALE, dequantize
 from georeg.io.atomic import atomic_path
@@ -51,6 +54,8 @@ INDEX_ARRAYS = (
     "tile_norm",
 )
 _PER_FEATURE = ("xy", "z", "ndsm", "scale", "angle", "response", "desc")
+#: the nearest-word structure saved beside the arrays (rule word_quantizer's file, copied)
+QUANTIZER_FILE = "quantizer.faiss"
 #: exact (flat) word assignment up to this many words; above, an HNSW graph (see BENCHMARKS.md)
 FLAT_MAX_WORDS = 16384
 #: knn: exact flat search while |query| * |ids| stays below this; FLANN kd-tree above
@@ -80,12 +85,24 @@ def quantizer_method(n_words: int, method: str = "auto") -> str:
     return method
 
 
+#: HNSW search breadth: recall@1 0.988 / 0.996 / 0.998 / 0.9998 at 16 / 32 / 64 / 128, the cost
+#: doubling with each step (k = 100,000; docs/BENCHMARKS.md "Nearest-word structure")
+EF_SEARCH = 64
+
+
 class WordQuantizer:
     """Nearest visual words of descriptors: exact faiss ``IndexFlatL2`` for small vocabularies,
-    faiss ``IndexHNSWFlat`` (M = 32, efSearch = 64) above ``FLAT_MAX_WORDS``, or an OpenCV FLANN
-    kd-tree (the paper's choice; 4 trees, 128 checks) when asked for ``method="kdtree"``."""
+    faiss ``IndexHNSWFlat`` (M = 32, efSearch ``ef_search``) above ``FLAT_MAX_WORDS``, or an
+    OpenCV FLANN kd-tree (the paper's choice; 4 trees, 128 checks) when asked for
+    ``method="kdtree"``."""
 
-    def __init__(self, centroids: np.ndarray, method: str = "auto", _index: Any = None) -> None:
+    def __init__(
+        self,
+        centroids: np.ndarray,
+        method: str = "auto",
+        _index: Any = None,
+        ef_search: int = EF_SEARCH,
+    ) -> None:
         self.centroids = np.ascontiguousarray(centroids, np.float32)
         self.method = quantizer_method(self.centroids.shape[0], method)
         if _index is not None:  # from ``load``: the saved faiss structure
@@ -107,7 +124,7 @@ class WordQuantizer:
                 self._index.add(self.centroids)
             finally:
                 faiss.omp_set_num_threads(nthreads)
-            self._index.hnsw.efSearch = 64  # recall@1 0.998 at k = 100,000 (BENCHMARKS.md)
+            self._index.hnsw.efSearch = int(ef_search)  # saved with the graph
         else:  # kdtree
             import cv2
 
@@ -124,9 +141,11 @@ class WordQuantizer:
             faiss.write_index(self._index, str(tmp))
 
     @classmethod
-    def load(cls, path: str | os.PathLike, centroids: np.ndarray) -> WordQuantizer:
+    def load(
+        cls, path: str | os.PathLike, centroids: np.ndarray, ef_search: int | None = None
+    ) -> WordQuantizer:
         """A quantizer saved by ``save`` for ``centroids`` (checked: same number of words and
-        dimension; a flat index also the same vectors)."""
+        dimension). An HNSW graph keeps the efSearch it was saved with unless ``ef_search``."""
         import faiss
 
         try:
@@ -142,7 +161,8 @@ class WordQuantizer:
             )
         if isinstance(index, faiss.IndexHNSWFlat):
             method = "hnsw"
-            index.hnsw.efSearch = 64
+            if ef_search is not None:
+                index.hnsw.efSearch = int(ef_search)
         elif isinstance(index, faiss.IndexFlatL2):
             method = "flat"
         else:
@@ -257,6 +277,7 @@ class MapIndex:
         quantizer: str | WordQuantizer = "auto",
         extra_meta: dict[str, Any] | None = None,
         words: Sequence[str | os.PathLike] | None = None,
+        quantizer_file: str | os.PathLike | None = None,
     ) -> MapIndex:
         """Concatenate per-tile features, assign words, build the inverted files; write
         ``out_dir`` atomically (a temporary sibling renamed at the end) and return it loaded.
@@ -264,7 +285,8 @@ class MapIndex:
         ``words``: one word file per tile (rule ``tile_words``, ``tile_word_file``), same order
         as ``feature_dirs``; they replace the in-process assignment (``WordQuantizer.words``,
         the same function, so the index is identical). ``quantizer`` then only names the method
-        recorded in ``meta.json``.
+        recorded in ``meta.json``. ``quantizer_file`` (rule word_quantizer's saved structure) is
+        copied in as ``quantizer.faiss``: queries then load it instead of rebuilding it.
 
         Memory: O(K + T) plus one tile (or one chunk) at a time: the per-feature arrays, the
         (word, tile) pairs and the word x tile matrix all go through memory maps.
@@ -442,6 +464,8 @@ class MapIndex:
                 "build_seconds": round(time.perf_counter() - t0, 3),
                 **(extra_meta or {}),
             }
+            if quantizer_file is not None:
+                shutil.copyfile(quantizer_file, tmp / QUANTIZER_FILE)
             (tmp / "meta.json").write_text(json.dumps(meta, indent=2) + "\n")
             if out.exists():
                 shutil.rmtree(out)
@@ -457,11 +481,16 @@ class MapIndex:
     # ---------------------------------------------------------------- queries
     @property
     def quantizer(self) -> WordQuantizer:
-        """The nearest-word structure (built lazily; same method as the build unless overridden)."""
+        """The nearest-word structure: the saved ``quantizer.faiss`` of the index directory when
+        there is one (the same graph as the words were assigned with), else built lazily."""
         if self._quantizer is None:
-            self._quantizer = WordQuantizer(
-                self.centroids, self.meta.get("word_assignment", "auto")
-            )
+            saved = None if self.path is None else Path(self.path) / QUANTIZER_FILE
+            if saved is not None and saved.exists():  # the graph of rule word_quantizer
+                self._quantizer = WordQuantizer.load(saved, self.centroids)
+            else:  # built here (an HNSW graph of 100,000 words: ~1 min)
+                self._quantizer = WordQuantizer(
+                    self.centroids, self.meta.get("word_assignment", "auto")
+                )
         return self._quantizer
 
     def quantize(self, desc: np.ndarray, k: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -637,6 +666,67 @@ class MapIndex:
             fid[:, :kr] = ids[j.astype(np.int64)]
         return dist, fid
 
+    def knn_words(
+        self, query_desc: np.ndarray, k: int = 10, nprobe: int = 8
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Approximate ``k`` nearest map features of each query descriptor over the WHOLE map.
+
+        The vocabulary is the coarse quantizer of an inverted file: each descriptor is compared
+        (exact L2) with the features of its ``nprobe`` nearest words only (IVF search; the cost
+        is |query| x nprobe x the mean word size, read word by word, so the memory stays that of
+        one word's descriptors). Returns flat arrays (query index, global feature id, distance),
+        at most ``k`` per query, nearest first within each query.
+        """
+        q = np.ascontiguousarray(dequantize(query_desc), np.float32).reshape(-1, DESC_DIM)
+        n, k, nprobe = len(q), max(1, int(k)), max(1, min(int(nprobe), self.n_words))
+        empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32))
+        if n == 0 or self.n_features == 0:
+            return empty
+        _, words = self.quantize(q, nprobe)
+        qq = np.repeat(np.arange(n), nprobe)
+        ww = words.ravel()
+        ok = ww >= 0
+        qq, ww = qq[ok], ww[ok]
+        o = np.argsort(ww, kind="stable")
+        qq, ww = qq[o], ww[o]
+        uw, first = np.unique(ww, return_index=True)
+        last = np.r_[first[1:], len(ww)]
+        offs = np.asarray(self.ivf_offsets)
+        qn = (q**2).sum(axis=1)
+        out_q, out_f, out_d = [], [], []
+        # many small products (a word's queries x its features): BLAS threads only spin there
+        # (measured on 2 loaded cores: 11-18 s with 2 threads, 1.5-2.2 s with 1)
+        with threadpool_limits(1, "blas"):
+            for w, a, b in zip(uw.tolist(), first.tolist(), last.tolist(), strict=True):
+                self._knn_word(q, qn, qq[a:b], w, offs, k, out_q, out_f, out_d)
+        if not out_q:
+            return empty
+        cq, cf, cd = np.concatenate(out_q), np.concatenate(out_f), np.concatenate(out_d)
+        o = np.lexsort((cd, cq))
+        cq, cf, cd = cq[o], cf[o], cd[o]
+        # every feature is in one word's list: no duplicates; keep the k nearest per query
+        start = np.r_[0, np.flatnonzero(np.diff(cq)) + 1]
+        rank = np.arange(len(cq)) - np.repeat(start, np.diff(np.r_[start, len(cq)]))
+        keep = rank < k
+        return cq[keep], cf[keep], np.sqrt(np.maximum(cd[keep], 0.0)).astype(np.float32)
+
+    def _knn_word(self, q, qn, qs, w, offs, k, out_q, out_f, out_d) -> None:
+        """knn_words for the queries ``qs`` probing word ``w``: append their ``k`` nearest."""
+        lo, hi = int(offs[w]), int(offs[w + 1])
+        if hi <= lo:
+            return
+        fid = np.sort(np.asarray(self.ivf_ids[lo:hi], np.int64))  # ascending: local reads
+        m = dequantize(np.asarray(self.desc[fid]))
+        d2 = qn[qs, None] - 2.0 * (q[qs] @ m.T) + (m**2).sum(axis=1)[None, :]
+        kk = min(k, len(fid))
+        if kk < len(fid):
+            part = np.argpartition(d2, kk - 1, axis=1)[:, :kk]
+        else:
+            part = np.broadcast_to(np.arange(len(fid)), (len(qs), len(fid)))
+        out_q.append(np.repeat(qs, kk))
+        out_f.append(fid[part].ravel())
+        out_d.append(np.take_along_axis(d2, part, axis=1).ravel())
+
     def features(self, ids: np.ndarray) -> dict[str, np.ndarray]:
         """The per-feature arrays (xy, z, ndsm, scale, angle, response, tile, word) of ``ids``."""
         ids = np.asarray(ids, np.int64)
@@ -662,7 +752,10 @@ def load_tile_words(path: str | os.PathLike, n: int, n_words: int) -> np.ndarray
 
 
 def save_word_quantizer(
-    centroids_path: str | os.PathLike, out_path: str | os.PathLike, method: str = "auto"
+    centroids_path: str | os.PathLike,
+    out_path: str | os.PathLike,
+    method: str = "auto",
+    ef_search: int = EF_SEARCH,
 ) -> str:
     """Rule ``word_quantizer``: build the nearest-word structure of the vocabulary once (the
     HNSW graph at K > 16,384 takes ~1 min) and save it for every ``tile_words`` job."""
@@ -671,7 +764,7 @@ def save_word_quantizer(
     except (OSError, ValueError) as exc:
         raise InputError(centroids_path, f"cannot read: {exc}", "rerun rule vocabulary") from exc
     t0 = time.perf_counter()
-    q = WordQuantizer(cent, method)
+    q = WordQuantizer(cent, method, ef_search=ef_search)
     q.save(out_path)
     log.info(
         "word quantizer: %s over %d words in %.1f s", q.method, len(cent), time.perf_counter() - t0
@@ -719,9 +812,11 @@ def build_from_grid(
     centroids_path: str | os.PathLike,
     out_dir: str | os.PathLike,
     word_files: Sequence[str | os.PathLike] | None = None,
+    quantizer_file: str | os.PathLike | None = None,
 ) -> MapIndex:
     """Rule ``build_index``: tile ids from the feature dirs' names, CRS from grid.json; words
-    from ``word_files`` (``<tile>.npy``, matched to the feature dirs by name) when given."""
+    from ``word_files`` (``<tile>.npy``, matched to the feature dirs by name) when given; the
+    saved nearest-word structure ``quantizer_file`` copied in for the queries."""
     try:
         grid = json.loads(Path(grid_path).read_text())
         cent = np.load(centroids_path)
@@ -749,4 +844,5 @@ def build_from_grid(
         crs_wkt=grid.get("crs"),
         extra_meta=extra,
         words=words,
+        quantizer_file=quantizer_file,
     )

@@ -103,6 +103,7 @@ class QueryFeatures:
     factors: list[float]
     angle: np.ndarray | None = None  # (n,) keypoint orientation, degrees (OpenCV, row-down)
     size: np.ndarray | None = None  # (n,) keypoint diameter in feature pixels (at the map's GSD)
+    factor: np.ndarray | None = None  # (n,) the resize factor each feature was detected at
 
     def __len__(self) -> int:
         return len(self.xy)
@@ -187,7 +188,7 @@ def query_features(
     r0, r1 = rows
     stack = band_u8 if band_u8.ndim == 3 else band_u8[None]
     img = np.ascontiguousarray(stack[0, r0:r1])
-    xs, ds, rs, angs, sizes = [], [], [], [], []
+    xs, ds, rs, angs, sizes, fs = [], [], [], [], [], []
     for f, b in ((f, b) for b in range(len(stack)) for f in factors):
         one = np.ascontiguousarray(stack[b, r0:r1])
         im, m, (sx, sy) = resample(one, float(f), one > 0)
@@ -201,6 +202,7 @@ def query_features(
         rs.append(feats.response)
         angs.append(feats.angle.astype(np.float64))
         sizes.append(feats.scale.astype(np.float64))
+        fs.append(np.full(len(feats), float(f)))
     if not xs:
         z = np.zeros(0)
         return QueryFeatures(
@@ -222,6 +224,7 @@ def query_features(
         list(factors),
         np.concatenate(angs),
         np.concatenate(sizes),
+        np.concatenate(fs),
     )
 
 
@@ -399,11 +402,30 @@ def paper_centres(bounds: Bounds, side: float, seed: int) -> np.ndarray:
 def index_candidates(
     qf: QueryFeatures, source: MapSource, diag_m: float, conf: dict[str, Any]
 ) -> list[tuple[Bounds, float | None]]:
-    """Candidate regions ranked by visual-word votes, each grown by the part's footprint."""
+    """Candidate regions, best first: ``rank`` hough (georeg.register.hough: nearest map
+    features vote for the query's centre), tiles (TF-IDF of visual words, each tile grown by the
+    part's footprint) or regions (TF-IDF over sliding windows)."""
     top = int(conf.get("top_candidates", 8))
-    rank = str(conf.get("rank", "tiles"))
+    rank = str(conf.get("rank", "hough"))
+    if rank not in ("tiles", "regions", "hough"):
+        raise ValueError(f"unknown register.index.rank {rank!r} (hough | tiles | regions)")
     g = diag_m
     out: list[tuple[Bounds, float | None]] = []
+    if source.index is not None and rank == "hough":
+        from georeg.register.hough import hough_regions
+
+        out = [
+            (b, s)
+            for b, s in hough_regions(
+                qf, source.index, source.bounds, source.gsd_m, diag_m, top, conf.get("hough")
+            )
+        ]
+        if len(out) >= top:
+            return out
+        # fewer voted places than the budget (a tiny query): the best tiles fill it
+        return (
+            out + index_candidates(qf, source, diag_m, {**conf, "rank": "tiles"})[: top - len(out)]
+        )
     if source.index is not None and rank == "tiles":
         tb = np.asarray(source.index.tile_bounds, np.float64)
         ranked = source.index.rank_tiles(qf.desc, top)

@@ -334,5 +334,3 @@ class QueryData:
 
     def truth_outline(self) -> np.ndarray | None:
         return None if self.truth is None else truth_outline(*self.truth)
-
-

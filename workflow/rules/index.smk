@@ -56,6 +56,8 @@ rule word_quantizer:
         centroids="results/index/vocabulary/centroids.npy",
     output:
         "results/index/vocabulary/quantizer.faiss",
+    params:
+        ef_search=config["vocabulary"].get("ef_search", 64),
     log:
         "logs/index/word_quantizer.log",
     threads: 1
@@ -89,9 +91,11 @@ rule build_index:
         centroids="results/index/vocabulary/centroids.npy",
         features=index_feature_dirs,
         words=index_word_files,
+        quantizer="results/index/vocabulary/quantizer.faiss",
     output:
         meta=f"{INDEX_DIR}/meta.json",
         arrays=expand(f"{INDEX_DIR}/{{name}}.npy", name=INDEX_ARRAYS),
+        quantizer=f"{INDEX_DIR}/quantizer.faiss",
     log:
         "logs/index/build_index.log",
     threads: 1
