@@ -110,7 +110,7 @@ def test_index_carries_the_saved_quantizer(tiles, tmp_path):
     words = [assign_tile_words(d, cent, tmp_path / "w" / f"{d.name}.npy", qpath) for d in dirs]
     assert sum(map(len, words)) > 1000
     files = sorted((tmp_path / "w").glob("*.npy"))
-    idx = build_from_grid(
+    build_from_grid(
         tiles["tmp"] / "grid.json", dirs, cent, tmp_path / "map", files, quantizer_file=qpath
     )
     assert (tmp_path / "map" / "quantizer.faiss").exists()
