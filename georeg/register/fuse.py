@@ -372,6 +372,9 @@ def run_fuse_parts(
         "residual_px": fused.get("residual_px"),
         "log10_nfa": fused.get("log10_nfa"),
         "strategy": reg_conf.get("strategy"),
+        "rank": (reg_conf.get("index") or {}).get("rank", "hough")
+        if reg_conf.get("strategy", "index") == "index"
+        else None,
         "acceptance": (reg_conf.get("acceptance") or {}).get("mode", "nfa"),
         "map_px_m": map_px,
         "feature_gsd_m": source.gsd_m,

@@ -526,6 +526,7 @@ def search_part(
             break
     out: dict[str, Any] = {
         "strategy": strategy,
+        "rank": str(conf.get("index", {}).get("rank", "hough")) if strategy == "index" else None,
         "rows": [qf.origin[1], qf.origin[1] + qf.height],
         "width": qf.width,
         "query_features": len(qf),
