@@ -238,6 +238,8 @@ def fig_search(q: QueryData, out: Path, dpi: int) -> str:
                 )
         h, w = q.shape
         rows = part.get("rows") or (0, h)
+        if rows[1] <= rows[0]:  # a part merged into the whole-query search
+            rows = (0, h)
         sub = None
         if q.truth is not None:
             sub = truth_outline(q.truth[0][rows[0] : rows[1]], q.truth[1][rows[0] : rows[1]])

@@ -169,6 +169,8 @@ def footprint(H: Any, width: int, height: int, rows: tuple[int, int] | None = No
 def truth_outline(tx: np.ndarray, ty: np.ndarray) -> np.ndarray | None:
     """Map outline of the query from its truth raster (border pixels), None without truth."""
     h, w = tx.shape
+    if h == 0 or w == 0:
+        return None
     idx = np.r_[
         [(0, c) for c in range(w)],
         [(r, w - 1) for r in range(h)],
