@@ -102,3 +102,17 @@ def test_hough_regions_nothing_to_vote(wide_map):
     blank = np.zeros((64, 64), np.uint8)
     qf = query_features(blank, (0, 64), [1.0], CONF)
     assert hough_regions(qf, idx, (0, 0, 1, 1), 0.5, 50.0, 5) == []
+
+
+def test_hough_regions_peak_on_the_map_edge(wide_map):
+    """A query at the map's corner: its votes pile up in the edge cells (no index error)."""
+    gray, tr, idx = wide_map
+    q = _warped_query(gray, 0, 1536 - 200, 200, 0.0, 1.0)
+    qf = query_features(q, (0, 200), [1.0], CONF)
+    src = MapSource.from_index(idx.path)
+    diag = float(np.hypot(200, 200) * 0.5)
+    (x0, y0, x1, y1), _v = hough_regions(
+        qf, idx, src.bounds, src.gsd_m, diag, 3, {"cell_frac": 1.0}
+    )[0]
+    cx, cy = tr @ (1536 - 100, 100)
+    assert x0 <= cx <= x1 and y0 <= cy <= y1

@@ -141,7 +141,7 @@ def hough_regions(
             continue
         # the centre: vote-weighted mean of the 3 x 3 cells around the peak, at its rotation
         t = int(np.argmax(sm[:, r, k]))
-        rs, ks = slice(max(0, r - 1), r + 2), slice(max(0, k - 1), k + 2)
+        rs, ks = slice(max(0, r - 1), min(ny, r + 2)), slice(max(0, k - 1), min(nx, k + 2))
         win = acc[t, rs, ks]
         rr, kk = np.mgrid[rs, ks]
         wsum = float(win.sum())
