@@ -312,15 +312,11 @@ def test_heightfield_of_a_16bit_single_band_ortho_without_dsm(tmp_path):
             "crs": "EPSG:32633", "transform": Affine(2.0, 0, 1000.0, 0, -2.0, 5000.0), "nodata": 0}  # fmt: skip
     with rasterio.open(tmp_path / "pan16.tif", "w", **prof) as d:
         d.write(a, 1)
-    cloud = read_heightfield(
-        tmp_path / "pan16.tif", None, (1000.0, 4920.0, 1100.0, 5000.0), flat_z=12.5
-    )
+    cloud = read_heightfield(tmp_path / "pan16.tif", None, (1000.0, 4920.0, 1100.0, 5000.0), flat_z=12.5)
     assert len(cloud) == 40 * 50 and np.all(cloud.xyz[:, 2] == 12.5)
     assert cloud.rgb.dtype == np.uint8
     assert np.all(cloud.rgb[:, 0] == cloud.rgb[:, 1]) and np.all(cloud.rgb[:, 1] == cloud.rgb[:, 2])
-    assert (
-        cloud.rgb[:, 0].min() <= 2 and cloud.rgb[:, 0].max() >= 253
-    )  # stretched, not clipped to 0/255
+    assert cloud.rgb[:, 0].min() <= 2 and cloud.rgb[:, 0].max() >= 253  # stretched, not clipped to 0/255
     # brightness follows the 16-bit values (row-major gradient)
     assert np.all(np.diff(cloud.rgb[:50, 0].astype(int)) >= 0)
 
@@ -345,12 +341,7 @@ def test_guided_polish_recovers_a_perturbed_pose_and_scores_the_truth_highest():
 
     class Win:  # the slice of DenseWindow that Matches uses
         def __init__(self):
-            self.xy, self.z, self.desc, self.bounds = (
-                xyz[:, :2],
-                xyz[:, 2],
-                desc,
-                (-400, -300, 400, 300),
-            )
+            self.xy, self.z, self.desc, self.bounds = xyz[:, :2], xyz[:, 2], desc, (-400, -300, 400, 300)
 
         def __len__(self):
             return len(self.xy)

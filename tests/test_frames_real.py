@@ -30,9 +30,7 @@ pytestmark = [
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location(
-        "bench_frames", REPO / "benchmarks" / "bench_frames.py"
-    )
+    spec = importlib.util.spec_from_file_location("bench_frames", REPO / "benchmarks" / "bench_frames.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod

@@ -80,9 +80,7 @@ def test_panchromatic_16_bit_becomes_grey_rgb(tmp_path):
 
 def test_nir_first_16_bit_takes_red_green_blue_by_description(tmp_path):
     s = _scene()
-    o = _write(
-        tmp_path / "nrgb.tif", [s[k] * 10000 for k in ("nir", "red", "green", "blue")], "uint16"
-    )
+    o = _write(tmp_path / "nrgb.tif", [s[k] * 10000 for k in ("nir", "red", "green", "blue")], "uint16")
     _with_descriptions(o, ["NIR", "Red", "Green", "Blue"])
     rgb, _ = _tile(tmp_path, o)
     for i, k in enumerate(("red", "green", "blue")):
@@ -178,9 +176,7 @@ def test_geographic_map_crs_is_refused_with_the_utm_zone(tmp_path):
         ds.write((s["red"] * 250).astype("uint8")[None])
     problems = check_inputs({"map": {"orthophoto": str(tmp_path / "geo.tif")}})
     assert len(problems) == 1 and "EPSG:32633" in problems[0], problems
-    assert (
-        check_inputs({"map": {"orthophoto": str(tmp_path / "geo.tif"), "crs": "EPSG:32633"}}) == []
-    )
+    assert check_inputs({"map": {"orthophoto": str(tmp_path / "geo.tif"), "crs": "EPSG:32633"}}) == []
     assert utm_hint(-117.0, 34.0).startswith("EPSG:32611")
 
 
@@ -212,9 +208,7 @@ def test_real_enmap_cube_as_orthophoto_takes_its_visible_bands(shared_data, tmp_
 
 @pytest.mark.shared
 def test_real_sentinel2_band_in_lon_lat_is_refused_with_its_utm_zone(shared_data):
-    b04 = sorted(
-        (shared_data / "swir_dates" / "oscd_dev" / "abudhabi" / "imgs_1").glob("*B04.tif")
-    )[0]
+    b04 = sorted((shared_data / "swir_dates" / "oscd_dev" / "abudhabi" / "imgs_1").glob("*B04.tif"))[0]
     problems = check_inputs({"map": {"orthophoto": str(b04)}})
     assert len(problems) == 1 and b04.name in problems[0], problems
     assert "EPSG:32640" in problems[0]  # Abu Dhabi, 54.4 deg E: UTM zone 40N

@@ -55,7 +55,6 @@ def test_no_module_outside_demo_imports_the_demo() -> None:
     users = [
         str(p.relative_to(PKG))
         for p in MODULES
-        if p.relative_to(PKG).parts[0] != "demo"
-        and any(_package(n) == "demo" for _, n in _imports(p))
+        if p.relative_to(PKG).parts[0] != "demo" and any(_package(n) == "demo" for _, n in _imports(p))
     ]
     assert users == []

@@ -34,9 +34,7 @@ pytestmark = pytest.mark.slow
 
 def smk(work: Path, *args: str, timeout: int = 1500) -> subprocess.CompletedProcess:
     cmd = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "-d", str(work)]
-    return subprocess.run(
-        cmd + list(args), capture_output=True, text=True, timeout=timeout, cwd=work
-    )
+    return subprocess.run(cmd + list(args), capture_output=True, text=True, timeout=timeout, cwd=work)
 
 
 def _derive_inputs(work: Path) -> dict[str, str]:
@@ -50,9 +48,7 @@ def _derive_inputs(work: Path) -> dict[str, str]:
     luma = 0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2]
     with rasterio.open(inp / "pan16.tif", "w", **(prof | {"count": 1})) as dst:
         dst.write((luma * 39.0).astype(np.uint16)[None])
-    nir = np.clip(
-        1.6 * rgb[1] - 0.5 * rgb[0], 0, 255
-    )  # vegetation bright, roads dark: not a colour
+    nir = np.clip(1.6 * rgb[1] - 0.5 * rgb[0], 0, 255)  # vegetation bright, roads dark: not a colour
     with rasterio.open(inp / "rgbn16.tif", "w", **(prof | {"count": 4})) as dst:
         dst.write((np.stack([nir, rgb[0], rgb[1], rgb[2]]) * 39.0).astype(np.uint16))
         for i, d in enumerate(["NIR", "Red", "Green", "Blue"], 1):
@@ -144,9 +140,7 @@ def test_two_band_swir_geotiff_is_registered_with_cube_and_footprint(runs):
     reg = json.loads((run / "results/queries/swir2/registration.json").read_text())
     assert reg["status"] == "registered", reg.get("reason")
     band = json.loads((run / "results/queries/swir2/band.json").read_text())
-    assert (
-        abs(band["band"]["wavelength_nm"] - 1610.0) < 1.0
-    )  # auto: the band nearest 1200 nm it has
+    assert abs(band["band"]["wavelength_nm"] - 1610.0) < 1.0  # auto: the band nearest 1200 nm it has
     ev = json.loads((run / "results/queries/swir2/evaluation.json").read_text())
     assert ev["outcome"] == "success" and ev["error"]["px"]["median"] < 1.5, ev["error"]
     prod = json.loads((run / "results/products/swir2/products.json").read_text())

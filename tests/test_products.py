@@ -301,9 +301,7 @@ def test_band_interleaved_cog_copy_keeps_pixels_and_is_a_cog(tmp_path):
     data = rng.integers(0, 4000, (12, 700, 530)).astype(np.uint16)
     stage = tmp_path / "stage.tif"
     prof = tiled_profile(530, 700, 12, "uint16", 0) | {
-        "crs": "EPSG:32611",
-        "transform": rasterio.Affine(1, 0, 500000, 0, -1, 3760000),
-    }
+        "crs": "EPSG:32611", "transform": rasterio.Affine(1, 0, 500000, 0, -1, 3760000)}
     with rasterio.open(stage, "w", **prof) as ds:
         ds.write(data)
         ds.set_band_description(3, "1200.0 nm")

@@ -245,9 +245,7 @@ def _expect_failure(
         hits = [ln for ln in err.splitlines() if ln.startswith("  - ") and line in ln]
         assert "Select jobs to execute" not in err, err[-3000:]
     else:
-        hits = [
-            ln for ln in err.splitlines() if ln.startswith("georeg error in rule") and line in ln
-        ]
+        hits = [ln for ln in err.splitlines() if ln.startswith("georeg error in rule") and line in ln]
     assert hits, err[-3000:]
     assert "Traceback" not in err, err[-3000:]
     for m in missing:

@@ -49,18 +49,12 @@ def test_every_frame_located_against_truth(georeferenced, small_map):
     assert after["position_m"]["mean"] < 2.0 and after["position_m"]["p90"] < 3.0, after
     assert after["rotation_deg"]["mean"] < 1.0, after
     # the Sim(3) scale of the SfM frame agrees with the truth within 1 %
-    assert abs(info["sim3"]["scale"] / ev["true_scale"] - 1) < 0.01, (
-        info["sim3"],
-        ev["true_scale"],
-    )
+    assert abs(info["sim3"]["scale"] / ev["true_scale"] - 1) < 0.01, (info["sim3"], ev["true_scale"])
     # keyframes come from the reconstruction, the frames between them from tracking
     kf = [p for p in poses if p["keyframe"]]
     assert 3 <= len(kf) < len(poses) / 2
     assert {p.get("source") for p in poses if p["status"] == "registered"} <= {
-        "sfm",
-        "tracking",
-        "relocalisation",
-    }
+        "sfm", "tracking", "relocalisation"}
     assert not (out / ".work").exists()
 
 
@@ -84,9 +78,7 @@ def test_outputs_agree_with_poses(georeferenced):
         z = np.array([v[0] for v in ds.sample(np.c_[las.x, las.y])], float)
     dz = (np.asarray(las.z) - z)[np.isfinite(z)]
     # no vertical bias; most points within a 1 m map cell's height spread (edges, trees: more)
-    assert abs(np.median(dz)) < 0.75 and np.mean(np.abs(dz) < 1.5) > 0.6, np.percentile(
-        dz, [10, 50, 90]
-    )
+    assert abs(np.median(dz)) < 0.75 and np.mean(np.abs(dz) < 1.5) > 0.6, np.percentile(dz, [10, 50, 90])
     assert len(list((out / "overlays").glob("*.png"))) >= 3
 
 
@@ -101,9 +93,7 @@ def test_video_of_another_place_is_not_found(small_map, tmp_path):
     # the same flight mirrored left-right: the same textures, a city that is not on the map
     src = cv2.VideoCapture(str(tmp / "video" / "flight.mp4"))
     path = tmp_path / "mirrored.mp4"
-    w = cv2.VideoWriter(
-        str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10, (VIDEO["width"], VIDEO["height"])
-    )
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10, (VIDEO["width"], VIDEO["height"]))
     n = 0
     while n < 40:
         ok, im = src.read()

@@ -142,12 +142,8 @@ def test_csv_geojson_kml(tmp_path):
     assert len(rows) == 13 and rows[4].split(",")[3] == "not_found"
     head = rows[0].split(",")
     r1 = dict(zip(head, rows[2].split(","), strict=True))
-    assert float(r1["x"]) == pytest.approx(X0 + 10) and float(r1["heading_deg"]) == pytest.approx(
-        45
-    )
-    lon, lat = pyproj.Transformer.from_crs(CRS, "EPSG:4326", always_xy=True).transform(
-        X0 + 10, Y0 + 5
-    )
+    assert float(r1["x"]) == pytest.approx(X0 + 10) and float(r1["heading_deg"]) == pytest.approx(45)
+    lon, lat = pyproj.Transformer.from_crs(CRS, "EPSG:4326", always_xy=True).transform(X0 + 10, Y0 + 5)
     assert float(r1["lon"]) == pytest.approx(lon, abs=1e-7)
 
     write_geojson(tmp_path / "t.geojson", poses, CRS, 100.0, look_every=5)
@@ -163,17 +159,13 @@ def test_csv_geojson_kml(tmp_path):
     ns = {"k": "http://www.opengis.net/kml/2.2"}
     cams = root.findall(".//k:Camera", ns)
     assert cams
-    assert float(cams[0].find("k:heading", ns).text) == pytest.approx(
-        45.0, abs=1.0
-    )  # grid vs true north
+    assert float(cams[0].find("k:heading", ns).text) == pytest.approx(45.0, abs=1.0)  # grid vs true north
     assert float(cams[0].find("k:tilt", ns).text) == pytest.approx(25.0, abs=1e-3)
 
 
 def test_point_map_roundtrip(tmp_path):
     rng = np.random.default_rng(0)
-    xyz = np.c_[
-        X0 + rng.uniform(0, 100, 50), Y0 + rng.uniform(0, 100, 50), rng.uniform(90, 130, 50)
-    ]
+    xyz = np.c_[X0 + rng.uniform(0, 100, 50), Y0 + rng.uniform(0, 100, 50), rng.uniform(90, 130, 50)]
     desc = rng.integers(0, 255, (50, 128)).astype(np.uint8)
     dpath = write_point_map(tmp_path / "p.laz", xyz, rng.integers(0, 255, (50, 3)),
                             np.full(50, 5), desc, CRS)  # fmt: skip

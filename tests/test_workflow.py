@@ -54,9 +54,7 @@ def test_demo_query_registered_to_a_pixel(demo_run):
     assert np.isfinite(geo[2]).mean() > 0.99  # every pixel got an elevation
     # geolocation.tif holds the locally refined geometry (issue 12); the homography is the
     # global one, evaluated in evaluation_global
-    stats = evaluate(
-        np.array(reg["homography"]), demo_run / "results/demo/queries/demo_truth.tif", 1.0
-    )
+    stats = evaluate(np.array(reg["homography"]), demo_run / "results/demo/queries/demo_truth.tif", 1.0)
     assert reg["evaluation_global"]["m"]["median"] == pytest.approx(stats["m"]["median"], rel=1e-6)
     assert reg["evaluation"]["m"]["median"] == pytest.approx(np.median(err), rel=1e-3)
     assert reg["refine"]["model"] != "homography"
@@ -92,7 +90,9 @@ def test_second_run_has_nothing_to_do(demo_run):
 def test_changed_matching_parameter_reruns_registration_only(demo_run, tmp_path):
     extra = tmp_path / "ratio.yaml"
     extra.write_text("register:\n  ratio: 0.75\n")
-    proc = snakemake(demo_run, "-n", "--cores", "2", "--configfile", str(TEST_CONFIG), str(extra))
+    proc = snakemake(
+        demo_run, "-n", "--cores", "2", "--configfile", str(TEST_CONFIG), str(extra)
+    )
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out[-2000:]
     assert "search_part" in out

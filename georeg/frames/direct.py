@@ -198,9 +198,7 @@ def direct_pose(gray: np.ndarray, cam0: PinholeCamera, ortho: str, dsm: str | No
     ``bounds``, the frame at ``scale``: only ``cam0``'s intrinsics are used then)."""
     c = {**DEFAULTS, **(conf or {})}
     t0 = time.perf_counter()
-    mt = match_window(
-        gray, cam0, ortho, dsm, feat_conf, map_gsd, z_ground, c, flat_z, bounds, scale
-    )
+    mt = match_window(gray, cam0, ortho, dsm, feat_conf, map_gsd, z_ground, c, flat_z, bounds, scale)
     thr = float(c["reproj_px"])
     if bounds is None:
         gsd_frame = ground_distance(cam0, z_ground) / cam0.fx

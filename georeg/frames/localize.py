@@ -216,10 +216,7 @@ def localize_frame(
 
 
 def _cam_record(cam: PinholeCamera) -> dict:
-    return {
-        "camera_center_xyz": [float(v) for v in cam.C],
-        "R_world_to_cam": np.asarray(cam.R).tolist(),
-    }
+    return {"camera_center_xyz": [float(v) for v in cam.C], "R_world_to_cam": np.asarray(cam.R).tolist()}
 
 
 def localize_image(
@@ -365,9 +362,7 @@ def localize_image(
 
         p, cam, res, v0 = scored[0]
         t4 = time.perf_counter()
-        if cloud is None or np.linalg.norm(
-            np.asarray(cloud_at) - cam.C
-        ) > 0.05 * maps.ground_distance(cam):
+        if cloud is None or np.linalg.norm(np.asarray(cloud_at) - cam.C) > 0.05 * maps.ground_distance(cam):
             cloud, cloud_at = maps.cloud_around(cam, c), cam.C
         ref = refine_pose(gray, cam, cloud, c.get("refine") or {})
         cam_r = cam.with_pose(ref.R, ref.C)
@@ -390,19 +385,13 @@ def localize_image(
         if cam.fx != K[0, 0]:
             rec["intrinsics"].update(fx=float(cam.fx), fy=float(cam.fy),
                                      source="estimated (focal search, then refined in PnP)")  # fmt: skip
-        z_med = (
-            float(np.median(res.inlier_xyz[:, 2]))
-            if res.inlier_xyz is not None
-            else maps.ground_z(cam.C)
-        )
+        z_med = float(np.median(res.inlier_xyz[:, 2])) if res.inlier_xyz is not None else maps.ground_z(cam.C)
         rec.update(status="registered", **_cam_record(cam), inliers=int(res.inliers),
                    reprojection_px=float(res.reprojection_px),
                    footprint_xy=footprint_xy(cam, z_med).tolist())  # fmt: skip
         rec.pop("reason", None)
         t5 = time.perf_counter()
-        if cloud is None or np.linalg.norm(
-            np.asarray(cloud_at) - cam.C
-        ) > 0.05 * maps.ground_distance(cam):
+        if cloud is None or np.linalg.norm(np.asarray(cloud_at) - cam.C) > 0.05 * maps.ground_distance(cam):
             cloud = maps.cloud_around(cam, c)
         final_render = display_render(cloud, cam, maps.gsd)
         timings["overlay_render_s"] = time.perf_counter() - t5
@@ -419,9 +408,7 @@ def localize_image(
                    reprojection_px=None)  # fmt: skip
     timings["total_s"] = time.perf_counter() - t0
     rec["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
-    log.info(
-        "frame %s: %s by %s (%.1f s)", path, rec["status"], rec.get("path"), timings["total_s"]
-    )
+    log.info("frame %s: %s by %s (%.1f s)", path, rec["status"], rec.get("path"), timings["total_s"])
     return rec, (und, final_render)
 
 
@@ -448,9 +435,7 @@ def localize_set(images: Any, camera: dict | None, index_dir, ortho_vrt, dsm_vrt
     out = Path(out_dir)
     paths = frame_images(images)
     if not paths:
-        raise InputError(
-            None, f"the frame list {images!r} matches no file", "check frames.<set>.images"
-        )
+        raise InputError(None, f"the frame list {images!r} matches no file", "check frames.<set>.images")
     for p in paths:  # every frame readable and large enough before anything is written
         check_frame(p)
     maps = MapSources(

@@ -426,9 +426,7 @@ def make_elevation_tile(
         surf = dem_tile(grid, dem, s.get("dem_resampling", "bilinear"))
         pts = dem_points(grid, surf)
     else:  # orthophoto-only map: registration needs no heights; the height layers are nodata
-        log.info(
-            "tile %s: map without elevation (no map.lidar, no map.dem): heights nodata", ortho_tile
-        )
+        log.info("tile %s: map without elevation (no map.lidar, no map.dem): heights nodata", ortho_tile)
         nan = np.full((grid.height, grid.width), np.nan, np.float32)
         surf = {"dsm": nan, "dtm": nan.copy(), "ndsm": nan.copy(), "density": np.zeros_like(nan)}
         pts = lidar.Points.empty()

@@ -360,11 +360,7 @@ def make_ortho_tile(
             with on_grid(ds, grid.crs, tr, tw, th, Resampling[resampling]) as (src, win):
                 boundless = src is ds
                 arr = read(
-                    src,
-                    window=win,
-                    boundless=boundless,
-                    fill_value=src_nodata or 0,
-                    path=path,
+                    src, window=win, boundless=boundless, fill_value=src_nodata or 0, path=path,
                     indexes=list(bands),
                 )
                 m = (

@@ -52,19 +52,11 @@ def visible_bands(ds: Any) -> tuple[list[int], str]:
     if not candidates:
         raise InputError(ds.name, "has only alpha bands", "an orthophoto needs an image band")
     if len(candidates) < 3:
-        how = (
-            "one band: panchromatic"
-            if len(candidates) == 1
-            else "fewer than 3 bands: band 1 as panchromatic"
-        )
+        how = "one band: panchromatic" if len(candidates) == 1 else "fewer than 3 bands: band 1 as panchromatic"
         return [candidates[0]], how
     by_interp = {c: i + 1 for i, c in enumerate(interp)}
     if all(c in by_interp for c in (ColorInterp.red, ColorInterp.green, ColorInterp.blue)):
-        rgb = [
-            by_interp[ColorInterp.red],
-            by_interp[ColorInterp.green],
-            by_interp[ColorInterp.blue],
-        ]
+        rgb = [by_interp[ColorInterp.red], by_interp[ColorInterp.green], by_interp[ColorInterp.blue]]
         return rgb, "colour interpretation (red, green, blue)"
     descs = list(ds.descriptions or [None] * ds.count)
     named: dict[str, int] = {}
@@ -93,9 +85,7 @@ def map_stretch(paths: Sequence[str], bands: Sequence[int]) -> list[float] | Non
             f = max(1, math.ceil(max(ds.width, ds.height) / SAMPLE_PX))
             shape = (max(1, ds.height // f), max(1, ds.width // f))
             arr = read(ds, out_shape=(len(bands), *shape), path=path, indexes=list(bands))
-            valid = (
-                read_masks(ds, out_shape=shape, path=path, indexes=list(bands)) > 0
-            ) & np.isfinite(arr).all(0)
+            valid = (read_masks(ds, out_shape=shape, path=path, indexes=list(bands)) > 0) & np.isfinite(arr).all(0)
             samples.append(arr[:, valid].astype(np.float64).ravel())
     vals = np.concatenate(samples) if samples else np.empty(0)
     if vals.size == 0:

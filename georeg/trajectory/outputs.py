@@ -114,9 +114,7 @@ def write_kml(path: str | Path, poses: list[dict], crs_wkt: str, z_ground: float
     if len(reg) >= 2:
         xyz = np.array([p["camera_center_xyz"] for p in reg], float)
         lon, lat = tr.transform(xyz[:, 0], xyz[:, 1])
-        coords = " ".join(
-            f"{a:.8f},{b:.8f},{c:.2f}" for a, b, c in zip(lon, lat, xyz[:, 2], strict=True)
-        )
+        coords = " ".join(f"{a:.8f},{b:.8f},{c:.2f}" for a, b, c in zip(lon, lat, xyz[:, 2], strict=True))
         out += ["<Placemark><name>camera path</name><styleUrl>#path</styleUrl><LineString>"
                 f"<altitudeMode>absolute</altitudeMode><coordinates>{coords}</coordinates>"
                 "</LineString></Placemark>"]  # fmt: skip

@@ -153,15 +153,13 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
     key_idx = []
     for k in iter_keyframes(gray_frames(), c["keyframes"]):  # current = keyframe k's frame
         key_idx.append(k.index)
-        cv2.imwrite(
-            str(kf_dir / _kf_name(k.index)), cv2.cvtColor(current["rgb"], cv2.COLOR_RGB2BGR)
-        )
+        cv2.imwrite(str(kf_dir / _kf_name(k.index)), cv2.cvtColor(current["rgb"], cv2.COLOR_RGB2BGR))
     timings["keyframes_s"] = time.perf_counter() - t0
     log.info("%d keyframes of %d frames (%.1f s)", len(key_idx), len(names), timings["keyframes_s"])
 
     # 2. SfM
     t0 = time.perf_counter()
-    cam_sfm = {k: float(camera[k]) for k in ("fx", "fy", "cx", "cy")} if camera else None
+    cam_sfm = ({k: float(camera[k]) for k in ("fx", "fy", "cx", "cy")} if camera else None)
     info: dict[str, Any] = {"frames": len(names), "keyframes": len(key_idx)}
     try:
         model = run_sfm(kf_dir, work / "sfm", cam_sfm, {"seed": int(c["seed"]), **c["sfm"]})
@@ -176,13 +174,7 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
         return PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, R, C)
 
     kf_dist = np.zeros(5) if camera else np.r_[np.asarray(model.dist, float), np.zeros(5)][:5]
-    cam_known = {
-        "fx": K[0, 0],
-        "fy": K[1, 1],
-        "cx": K[0, 2],
-        "cy": K[1, 2],
-        "dist": kf_dist.tolist(),
-    }
+    cam_known = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "dist": kf_dist.tolist()}
     log.info("SfM: %d of %d keyframes, %d points (%.1f s)", len(model.names), len(key_idx),
              len(model.xyz), timings["sfm_s"])  # fmt: skip
 
@@ -200,9 +192,7 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
         anchor_recs.append({k: rec.get(k) for k in ("image", "status", "inliers", "reprojection_px",
                                                      "camera_center_xyz", "reason", "timings_s")})  # fmt: skip
         if rec["status"] == "registered":
-            anchors.append(
-                (nm, np.asarray(rec["R_world_to_cam"]), np.asarray(rec["camera_center_xyz"]))
-            )
+            anchors.append((nm, np.asarray(rec["R_world_to_cam"]), np.asarray(rec["camera_center_xyz"])))
     timings["anchors_s"] = time.perf_counter() - t0
     info.update(sfm={**model.info, "registered": len(model.names), "points": int(len(model.xyz))},
                 anchors=anchor_recs)  # fmt: skip
@@ -271,11 +261,7 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
             pt, uv = model.observations(_kf_name(i))
             tracker.reset(gray, uv, xyz_map[pt])
             proj, _ = cam_at(R, C).project(xyz_map[pt])
-            rms = (
-                float(np.sqrt(np.mean(np.sum((proj - uv) ** 2, axis=1))))
-                if len(pt)
-                else float("nan")
-            )
+            rms = float(np.sqrt(np.mean(np.sum((proj - uv) ** 2, axis=1)))) if len(pt) else float("nan")
             fp = FramePose(True, R, C, int(len(pt)), rms, "sfm")
         else:
             fp = tracker.step(gray)
@@ -346,13 +332,8 @@ def _evaluate_set(poses: list[dict], truth: dict, model, kf_frame: dict[str, int
         "registered": sum(1 for p in poses if p["status"] == "registered"),
         "after_icp": _stats([e["final"] for e in ev if "final" in e]),
         "before_icp": _stats([e["before_icp"] for e in ev if "before_icp" in e]),
-        "keyframes_after_icp": _stats(
-            [
-                p["evaluation"]["final"]
-                for p in poses
-                if p.get("keyframe") and "final" in p.get("evaluation", {})
-            ]
-        ),  # fmt: skip
+        "keyframes_after_icp": _stats([p["evaluation"]["final"] for p in poses
+                                       if p.get("keyframe") and "final" in p.get("evaluation", {})]),  # fmt: skip
     }
     by_frame = {p["frame"]: p for p in poses}
     src, dst = [], []

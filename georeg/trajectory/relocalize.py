@@ -100,7 +100,7 @@ class Tracker:
         pose = _pnp(self.xyz, self.uv.astype(np.float64), self.K, self.c, "tracking")
         if pose.ok:  # drop tracks that no longer agree with the pose (drifted or occluded)
             proj, z = _project(self.xyz, pose.R, pose.C, self.K, gray.shape[::-1])
-            good = np.linalg.norm(proj - self.uv, axis=1) < 2 * float(self.c["reproj_px"])
+            good = (np.linalg.norm(proj - self.uv, axis=1) < 2 * float(self.c["reproj_px"]))
             good &= z > 0
             self.uv, self.xyz = self.uv[good], self.xyz[good]
         return pose
