@@ -279,6 +279,9 @@ METHODS: dict[str, dict[str, Any]] = {
     # and `bands: auto` (+ the band nearest 2200 nm) -- the workflow default; and `bands: one`
     "wf_default": {"pipeline": {}, "bands": "auto"},
     "wf_default_one": {"pipeline": {}, "bands": "one"},
+    # one band chosen by wavelength (the nearest the scene has): which SWIR band alone
+    "wf_band_1600nm": {"pipeline": {}, "bands": "1600nm"},
+    "wf_band_2200nm": {"pipeline": {}, "bands": "2200nm"},
     # area-based (georeg.register.dense, config register.dense; off in the workflow by default):
     # CFOG channels correlated by FFT over 10 deg rotations on the whole map, the peak's
     # similarity refined by a guided feature re-match, decided by the NFA (alone, and as the
@@ -350,18 +353,21 @@ def workflow_register_conf() -> dict[str, Any]:
 
 def workflow_band_order(names: list[str], rule: str) -> list[int]:
     """Indexes of the query bands named by wavelength (``1.6um``, ``2200nm``) that the workflow's
-    query stage pools (georeg.register.band: ``band: auto``, then ``bands: auto`` or ``one``)."""
+    query stage pools (georeg.register.band: ``band: auto``, then ``bands: auto`` or ``one``);
+    a wavelength rule (``"2200nm"``): the one band nearest it."""
     from georeg.register.band import auto_index, auto_partner, parse_band_spec
 
     wl = np.array([float(parse_band_spec(n).value) for n in names])
+    if rule not in ("auto", "one"):  # one band by wavelength
+        return [int(np.argmin(np.abs(wl - float(parse_band_spec(rule).value))))]
     first = auto_index(wl)
     other = auto_partner(wl, first) if rule == "auto" else None
     return [first] + ([other] if other is not None else [])
 
 
 def query_stack(q: Query, bands: int | str) -> np.ndarray:
-    """The query image(s) a method sees: the first ``bands`` bands (the random band first), or
-    the workflow's own choice (``"auto"`` / ``"one"``)."""
+    """The query image(s) a method sees: the first ``bands`` bands (the random band first), the
+    workflow's own choice (``"auto"`` / ``"one"``) or the band nearest a wavelength."""
     names = list(q.bands)
     if isinstance(bands, str):
         order = workflow_band_order(names, bands)
