@@ -282,8 +282,10 @@ def write_query_band(
     if not mask.any():  # before writing anything: a failed step leaves no output
         raise InputError(image, f"band {band_spec} has no valid pixel", "check 'data ignore value'")
     u8, stretch = stretch_uint8(band, mask, *percentiles)
+    valid_fraction = float(mask.mean())
+    del band, mask  # one float band in memory at a time
     stack = [u8]
-    pooled = [{**_band_record(info), "stretch": stretch, "valid_fraction": float(mask.mean())}]
+    pooled = [{**_band_record(info), "stretch": stretch, "valid_fraction": valid_fraction}]
     for i in pooled_indices(cube, info["index"], bands_spec)[1:]:
         b, m, bi = select_band(cube, BandSpec("index", i))
         if not m.any():
@@ -292,6 +294,7 @@ def write_query_band(
         bu8, bst = stretch_uint8(b, m, *percentiles)
         stack.append(bu8)
         pooled.append({**_band_record(bi), "stretch": bst, "valid_fraction": float(m.mean())})
+        del b, m
     log.info(
         "query bands pooled: %s",
         ", ".join(f"{p['index']} ({_nm(p['wavelength_nm'])})" for p in pooled),
@@ -308,7 +311,8 @@ def write_query_band(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
         with atomic_path(out_tif) as tmp, rasterio.open(tmp, "w", **profile) as dst:
-            dst.write(np.stack(stack))
+            for k, plane in enumerate(stack, start=1):
+                dst.write(plane, k)
     meta = {
         "image": str(image),
         "cube": cube.describe(),
@@ -320,7 +324,7 @@ def write_query_band(
         "pooled_bands": pooled,
         "gsd_m": gsd_m,
         "stretch": {"percentiles": list(percentiles), **stretch},
-        "valid_fraction": float(mask.mean()),
+        "valid_fraction": valid_fraction,
         "seconds": time.perf_counter() - t0,
     }
     write_json(out_json, meta)
