@@ -273,8 +273,15 @@ METHODS: dict[str, dict[str, Any]] = {
     "wf_adaptive_only": {"pipeline": {"split": {"parts_if_whole_fails": False}}},
     # the default: as above, and the parts of a small query when the whole query fails
     "wf_adaptive": {"pipeline": {}},
-    # both SWIR bands' features pooled (the query stage of the workflow writes one band)
+    # both SWIR bands' features pooled, the random band first
     "wf_adaptive_2bands": {"pipeline": {}, "bands": 2},
+    # the workflow's query stage exactly: `band: auto` (nearest 1200 nm: the ~1.6 um band here)
+    # and `bands: auto` (+ the band nearest 2200 nm) -- the workflow default; and `bands: one`
+    "wf_default": {"pipeline": {}, "bands": "auto"},
+    "wf_default_one": {"pipeline": {}, "bands": "one"},
+    # one band chosen by wavelength (the nearest the scene has): which SWIR band alone
+    "wf_band_1600nm": {"pipeline": {}, "bands": "1600nm"},
+    "wf_band_2200nm": {"pipeline": {}, "bands": "2200nm"},
     # area-based (georeg.register.dense, config register.dense; off in the workflow by default):
     # CFOG channels correlated by FFT over 10 deg rotations on the whole map, the peak's
     # similarity refined by a guided feature re-match, decided by the NFA (alone, and as the
@@ -344,6 +351,33 @@ def workflow_register_conf() -> dict[str, Any]:
     return yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["register"]
 
 
+def workflow_band_order(names: list[str], rule: str) -> list[int]:
+    """Indexes of the query bands named by wavelength (``1.6um``, ``2200nm``) that the workflow's
+    query stage pools (georeg.register.band: ``band: auto``, then ``bands: auto`` or ``one``);
+    a wavelength rule (``"2200nm"``): the one band nearest it."""
+    from georeg.register.band import auto_index, auto_partner, parse_band_spec
+
+    wl = np.array([float(parse_band_spec(n).value) for n in names])
+    if rule not in ("auto", "one"):  # one band by wavelength
+        return [int(np.argmin(np.abs(wl - float(parse_band_spec(rule).value))))]
+    first = auto_index(wl)
+    other = auto_partner(wl, first) if rule == "auto" else None
+    return [first] + ([other] if other is not None else [])
+
+
+def query_stack(q: Query, bands: int | str) -> np.ndarray:
+    """The query image(s) a method sees: the first ``bands`` bands (the random band first), the
+    workflow's own choice (``"auto"`` / ``"one"``) or the band nearest a wavelength."""
+    names = list(q.bands)
+    if isinstance(bands, str):
+        order = workflow_band_order(names, bands)
+    else:
+        order = list(range(min(int(bands), len(names))))
+    if len(order) == 1:
+        return q.bands[names[order[0]]]
+    return np.stack([q.bands[names[i]] for i in order])
+
+
 def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict[str, Any]:
     """The workflow's registration stages (georeg.register.fuse.register_query) on plain arrays."""
     from georeg.register.fuse import register_query
@@ -354,8 +388,7 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
     fgsd = sc_map.map_gsd
     mxy, mdesc, mang, msize = map_features(sc_map, fgsd, merged_conf(FEATURES))
     src = MapSource(mxy, mdesc, fgsd, angle=mang, scale=msize * fgsd)
-    nb = int(spec.get("bands", 1))
-    u8 = np.stack(list(q.bands.values())[:nb]) if nb > 1 else next(iter(q.bands.values()))
+    u8 = query_stack(q, spec.get("bands", 1))
     res = register_query(u8, src, conf, q.gsd, [q.gsd / fgsd], seed)
     split = res.get("split") or {}
     return {

@@ -1,4 +1,5 @@
-"""Rule query_band: select, mask and stretch the query band (band.tif + band.json)."""
+"""Rule query_band: select, mask and stretch the query band and the bands pooled with it
+(band.tif, the primary band first, + band.json)."""
 
 from georeg.io.scripting import run
 from georeg.register.band import write_query_band
@@ -13,6 +14,7 @@ def main(smk):
         smk.output.band,
         smk.output.meta,
         tuple(smk.params.percentiles),
+        q.get("bands", "auto"),
     )
 
 

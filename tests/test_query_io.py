@@ -11,7 +11,16 @@ import rasterio
 
 from georeg.io.errors import InputError
 from georeg.io.query import open_query, parse_envi_header
-from georeg.register.band import parse_band_spec, select_band, stretch_uint8, write_query_band
+from georeg.register.band import (
+    auto_partner,
+    parse_band_spec,
+    pooled_indices,
+    read_query_band,
+    read_query_bands,
+    select_band,
+    stretch_uint8,
+    write_query_band,
+)
 
 CODES = {"u1": 1, "i2": 2, "i4": 3, "f4": 4, "f8": 5, "u2": 12, "u4": 13, "i8": 14, "u8": 15}
 
@@ -172,6 +181,62 @@ def test_single_band_png_and_write_query_band(tmp_path):
     assert meta["band"]["index"] == 0 and meta["valid_fraction"] == 1.0
     with rasterio.open(tmp_path / "b.tif") as d:
         assert d.read(1).shape == (40, 30) and d.nodata == 0
+        assert d.count == 1  # `bands: auto` on one band: nothing to pool
+    assert [b["index"] for b in meta["pooled_bands"]] == [0]
+    assert read_query_bands(str(tmp_path / "b.tif")).shape == (1, 40, 30)
+
+
+def test_auto_partner_pools_the_other_swir_window():
+    # a 0.9-2.5 um cube: 1200 nm (band auto) + the band nearest 2200 nm
+    wl = np.arange(900.0, 2501.0, 10.0)
+    assert wl[auto_partner(wl, 30)] == 2200.0
+    # Landsat / Sentinel-2 SWIR pair: band auto -> 1.61 um, pooled with 2.19 um, and back
+    pair = np.array([1610.0, 2190.0])
+    assert auto_partner(pair, 0) == 1 and auto_partner(pair, 1) == 0
+    # a 2200 nm primary pools 1650 nm; a 0.9-1.7 um InGaAs cube pools 1650 nm with 1200 nm
+    assert wl[auto_partner(wl, int(np.flatnonzero(wl == 2200.0)[0]))] == 1650.0
+    ingaas = np.arange(900.0, 1701.0, 5.0)
+    assert ingaas[auto_partner(ingaas, 60)] == 1650.0
+    # nothing far enough in a SWIR window, one band, or no wavelengths: no partner
+    assert auto_partner(np.array([1200.0, 1300.0, 1400.0]), 0) is None
+    assert auto_partner(np.array([1650.0]), 0) is None and auto_partner(None, 0) is None
+
+
+def test_write_query_band_pools_bands_primary_first(tmp_path):
+    wl = np.arange(1000.0, 2401.0, 100.0)  # 15 bands
+    rng = np.random.default_rng(5)
+    cube = (rng.random((15, 20, 24)) * 1000 + 10).astype("f4")
+    cube[12, :3] = -1.0  # nodata in the 2200 nm band only
+    wls = ", ".join(f"{w:g}" for w in wl)
+    hdr = write_envi(
+        tmp_path / "q", cube, extra=f"wavelength = {{{wls}}}\ndata ignore value = -1\n"
+    )
+    meta = write_query_band(str(hdr), "auto", 2.0, tmp_path / "b.tif", tmp_path / "b.json")
+    got = [(b["index"], b["wavelength_nm"]) for b in meta["pooled_bands"]]
+    assert got == [(2, 1200.0), (12, 2200.0)]
+    stack = read_query_bands(str(tmp_path / "b.tif"))
+    assert stack.shape == (2, 20, 24)
+    # each plane is its own band stretched on its own valid pixels; 0 = that band's nodata
+    for plane, k in zip(stack, (2, 12), strict=True):
+        m = cube[k] != -1.0
+        np.testing.assert_array_equal(plane, stretch_uint8(cube[k], m)[0])
+    assert (stack[1, :3] == 0).all() and (stack[0] > 0).all()
+    assert meta["pooled_bands"][1]["valid_fraction"] == pytest.approx(17 / 20)
+    # readers of the primary band (refinement, figures) see band 1
+    np.testing.assert_array_equal(read_query_band(str(tmp_path / "b.tif")), stack[0])
+    # `one`: the primary only; a list: the primary, then those bands, duplicates dropped
+    meta = write_query_band(str(hdr), "auto", 2.0, tmp_path / "c.tif", tmp_path / "c.json",
+                            bands_spec="one")  # fmt: skip
+    assert [b["index"] for b in meta["pooled_bands"]] == [2]
+    with rasterio.open(tmp_path / "c.tif") as d:
+        assert d.count == 1
+    c = open_query(hdr)
+    assert pooled_indices(c, 2, ["1.6um", 0, "1200nm"]) == [2, 6, 0]
+    assert pooled_indices(c, None, "auto") == [None]  # the mean is not pooled with anything
+    with pytest.raises(InputError, match="not understood"):
+        pooled_indices(c, 2, "all")
+    with pytest.raises(InputError, match="cannot be pooled"):
+        pooled_indices(c, 2, ["mean"])
 
 
 def test_enmap_geotiff(shared_data):

@@ -196,6 +196,24 @@ def test_query_features_pool_a_band_stack():
     assert np.allclose(fab.xy[: len(fa)], fa.xy) and fab.xy[:, 1].min() >= 10
 
 
+def test_pooled_bands_register_a_query_whose_primary_band_has_no_structure(synthetic_map):
+    """The workflow's stages on a band stack: the primary band is flat (valid, no feature),
+    the second band holds the scene; pooled, the query is registered to the truth."""
+    from georeg.register.fuse import register_query
+
+    img, tr, src = synthetic_map
+    q, Minv = warp_query(img[300:560, 500:760], 1.25, 50.0)  # 0.8 m, rotated
+    Minv = np.array([[1, 0, 500], [0, 1, 300], [0, 0, 1]]) @ Minv
+    flat = np.where(q > 0, 128, 0).astype(np.uint8)
+    conf = reg_conf()
+    alone = register_query(flat, src, conf, 0.8, [0.8], seed=4)
+    assert alone["status"] == "not_found"
+    res = register_query(np.stack([flat, q]), src, conf, 0.8, [0.8], seed=4)
+    assert res["status"] == "registered", res.get("reason")
+    err = error_px(np.array(res["homography"]), Minv, tr, q)
+    assert np.median(err) < 0.5 and np.percentile(err, 90) < 1.0
+
+
 def test_paper_centres_cover_the_map_without_replacement():
     c = paper_centres((0, 0, 1000, 800), 400, seed=5)
     assert len(np.unique(c, axis=0)) == len(c) >= 5 * 4
@@ -360,6 +378,48 @@ def test_small_enmap_swir_query_registers_in_default_config(enmap, angle, centre
     assert res["status"] == "registered", res.get("reason")
     assert res["split"]["parts"] == 1 and "whole query" in res["split"]["reason"]
     err = error_px(np.array(res["homography"]), Minv, tr, q)
+    assert np.median(err) < 1.0 and np.percentile(err, 90) < 2.0
+
+
+@pytest.mark.shared
+def test_small_enmap_swir_cube_registers_through_the_query_stage(enmap, tmp_path):
+    """The workflow's query stage in its default (`band: auto`, `bands: auto`) on a real
+    150 x 150 px EnMAP SWIR cube (bands >= 900 nm, 15 m, rotated 25 deg): band.tif pools 1200
+    and 2200 nm, then the default registration stages find it against the 650 nm band."""
+    import warnings
+
+    from georeg.register.band import read_query_bands, write_query_band
+    from georeg.register.fuse import register_query
+
+    cube, tr = enmap
+    vis, vm, _ = select_band(cube, "650nm")
+    v8, _ = stretch_uint8(vis, vm)
+    src = map_source(v8, vm, tr)
+    wl = cube.wavelengths_nm
+    swir = np.flatnonzero(wl >= 900.0)
+    c0, r0 = 257 - 75, 321 - 75
+    planes = []
+    for i in swir:
+        b, m, _ = select_band(cube, int(i))
+        q, Minv = warp_query(np.where(m, b, 0.0).astype(np.float32), 2.0, 25.0)
+        planes.append(q[r0 : r0 + 150, c0 : c0 + 150])
+    Minv = Minv @ np.array([[1.0, 0, c0], [0, 1.0, r0], [0, 0, 1]])
+    path = tmp_path / "swir.tif"
+    prof = {"driver": "GTiff", "width": 150, "height": 150, "count": len(swir),
+            "dtype": "float32", "nodata": 0.0}  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        with rasterio.open(path, "w", **prof) as dst:
+            dst.write(np.stack(planes))
+            for k, i in enumerate(swir):
+                dst.set_band_description(k + 1, f"{wl[i]:.2f} nm")
+    meta = write_query_band(str(path), "auto", 15.0, tmp_path / "band.tif", tmp_path / "b.json")
+    nm = [b["wavelength_nm"] for b in meta["pooled_bands"]]
+    assert abs(nm[0] - 1200) < 10 and abs(nm[1] - 2200) < 10 and len(nm) == 2
+    u8 = read_query_bands(str(tmp_path / "band.tif"))
+    res = register_query(u8, src, default_register_conf(), 15.0, [15.0 / 30.0], seed=3)
+    assert res["status"] == "registered", res.get("reason")
+    err = error_px(np.array(res["homography"]), Minv, tr, u8[0])
     assert np.median(err) < 1.0 and np.percentile(err, 90) < 2.0
 
 

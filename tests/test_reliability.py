@@ -193,6 +193,7 @@ def test_query_larger_than_memory_is_read_band_by_band(tmp_path):
     )
     mm = np.memmap(data, np.uint16, "r+", shape=(lines, bands, samples))
     mm[::25, 75, ::7] = 1000  # a few real values in the band asked for
+    mm[::25, 325, ::5] = 500  # ... and in the 2200 nm band pooled with it (`bands: auto`)
     mm.flush()
     del mm
     band_bytes = lines * samples * 4  # one float32 band
@@ -209,7 +210,8 @@ def test_query_larger_than_memory_is_read_band_by_band(tmp_path):
     finally:
         tracemalloc.stop()
     assert meta["band"]["index"] == 75
-    assert peak < 8 * band_bytes, peak  # the whole cube: 200 band-sizes (measured: ~5.5)
+    assert [b["index"] for b in meta["pooled_bands"]] == [75, 325]
+    assert peak < 8 * band_bytes, peak  # the whole cube: 200 band-sizes (measured: ~6)
     assert data.stat().st_blocks * 512 < 50e6  # still sparse: the test used little disk
     data.unlink()
 

@@ -26,7 +26,7 @@ from rasterio.transform import Affine
 from georeg.register.geolocation import map_xy, write_geolocation
 from georeg.report.evaluation import run_evaluate_query
 from georeg.report.figures import load_query_data, make_query_figures
-from georeg.report.html import parse_timings, query_seconds, run_report
+from georeg.report.html import parse_timings, pooled_text, query_seconds, run_report
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 CHROMIUM = Path("/usr/bin/chromium")
@@ -426,3 +426,11 @@ def test_chromium_renders_without_console_errors(run_dir: Path, tmp_path: Path) 
     # the header bar (dark blue) and figures (not just white) are rendered
     assert (img.reshape(-1, 3) < 100).all(axis=1).mean() > 0.01
     shutil.rmtree(profile, ignore_errors=True)
+
+
+def test_pooled_bands_text() -> None:
+    pooled = [{"index": 39, "wavelength_nm": 1199.2}, {"index": 113, "wavelength_nm": 2200.0}]
+    assert pooled_text(pooled) == "1199.2 nm (index 39), 2200.0 nm (index 113)"
+    assert pooled_text([{"index": None, "wavelength_nm": None}]) == "mean"
+    assert pooled_text([{"index": 0, "wavelength_nm": None}]) == "index 0"
+    assert pooled_text(None) is None

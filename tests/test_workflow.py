@@ -44,6 +44,12 @@ def test_demo_query_registered_to_a_pixel(demo_run):
     assert reg["split"]["idle_part_jobs"] == [1] and len(reg["parts"]) == 1
     assert reg["parts"][0]["rows"] == [0, reg["height"]]
     assert all((demo_run / f"results/queries/demo/parts/part_{i}.json").exists() for i in (0, 1))
+    # `bands: auto` (the default): the demo cube's 1200 nm band pooled with its 2200 nm band
+    nm = [b["wavelength_nm"] for b in reg["pooled_bands"]]
+    # the tiny demo cube has 40 bands 41 nm apart
+    assert len(nm) == 2 and abs(nm[0] - 1200) < 30 and abs(nm[1] - 2200) < 30
+    with rasterio.open(demo_run / "results/queries/demo/band.tif") as src:
+        assert src.count == 2
     # independent check against the dense truth, through the written geolocation raster
     with rasterio.open(demo_run / "results/queries/demo/geolocation.tif") as src:
         geo = src.read()

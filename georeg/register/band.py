@@ -1,4 +1,5 @@
-"""Choose the query band (nearest wavelength, index or streamed mean), mask nodata, stretch, resample."""
+"""Choose the query band (nearest wavelength, index or streamed mean) and the bands pooled with it,
+mask nodata, stretch, resample."""
 
 from __future__ import annotations
 
@@ -17,6 +18,12 @@ log = logging.getLogger(__name__)
 
 #: the paper's band (near 1.2 um), what `band: auto` looks for first
 AUTO_NM = 1200.0
+#: `bands: auto` pools the primary band with the band nearest the first of these (the centres
+#: of the two other SWIR windows: the pair the cross-spectral protocol measured) that the cube
+#: has within POOL_TOLERANCE_NM and that lies at least POOL_MIN_SEPARATION_NM from the primary
+POOL_TARGETS_NM = (2200.0, 1650.0)
+POOL_TOLERANCE_NM = 150.0
+POOL_MIN_SEPARATION_NM = 300.0
 _SPEC_RE = re.compile(r"^\s*([0-9]+(?:\.[0-9]+)?)\s*(nm|um|µm)\s*$", re.I)
 
 
@@ -97,12 +104,82 @@ def resolve_band(cube: Cube, bs: BandSpec) -> int | None:
     try:
         return nearest_band(cube, AUTO_NM)
     except InputError:
-        i = int(np.argmin(np.abs(wl - AUTO_NM)))
+        i = auto_index(wl)
         log.warning(
             "%s covers %.0f-%.0f nm, not %.0f nm: band auto -> index %d (%.1f nm)",
             cube.path, wl.min(), wl.max(), AUTO_NM, i, wl[i],
         )  # fmt: skip
         return i
+
+
+def auto_index(wavelengths_nm: np.ndarray | None) -> int:
+    """``band: auto`` from the wavelengths alone: the band nearest 1200 nm (0 without them)."""
+    if wavelengths_nm is None or len(wavelengths_nm) == 0:
+        return 0
+    return int(np.argmin(np.abs(np.asarray(wavelengths_nm, np.float64) - AUTO_NM)))
+
+
+def auto_partner(wavelengths_nm: np.ndarray | None, primary: int) -> int | None:
+    """``bands: auto``'s second band for primary band ``primary``, or None.
+
+    The band nearest 2200 nm, or nearest 1650 nm when that one is too close to the primary
+    (e.g. a 2200 nm primary): the first target the cube has a band for within 150 nm that lies
+    at least 300 nm from the primary. None without wavelengths (the band order says nothing) or
+    when no band qualifies (one band, a narrow cube).
+    """
+    if wavelengths_nm is None or len(wavelengths_nm) < 2:
+        return None
+    wl = np.asarray(wavelengths_nm, np.float64)
+    for target in POOL_TARGETS_NM:
+        i = int(np.argmin(np.abs(wl - target)))
+        if abs(wl[i] - target) <= POOL_TOLERANCE_NM and (
+            abs(wl[i] - wl[primary]) >= POOL_MIN_SEPARATION_NM
+        ):
+            return i
+    return None
+
+
+def parse_bands_spec(spec: Any) -> str | list[BandSpec]:
+    """``bands``: ``"auto"``, ``"one"`` (the primary band only) or a list of band specs pooled
+    with the primary band."""
+    if spec is None:
+        return "auto"
+    if isinstance(spec, str) and spec.strip().lower() in ("auto", "one"):
+        return spec.strip().lower()
+    if isinstance(spec, (list, tuple)):
+        out = [parse_band_spec(s) for s in spec]
+        if any(b.kind in ("mean", "auto") for b in out):
+            raise InputError(
+                None,
+                f"bands {spec!r}: list wavelengths or indexes",
+                "'mean'/'auto' cannot be pooled",
+            )
+        return out
+    raise InputError(
+        None,
+        f"bands {spec!r} is not understood",
+        "use 'auto', 'one' or a list like [1650nm, 2200nm]",
+    )
+
+
+def pooled_indices(cube: Cube, primary: int | None, spec: Any) -> list[int | None]:
+    """Bands whose features are pooled, the primary first (None = the mean), duplicates dropped.
+
+    ``auto``: the primary plus ``auto_partner`` (none for a ``mean`` primary); ``one``: the primary
+    only; a list: the primary plus those bands.
+    """
+    ps = parse_bands_spec(spec)
+    out: list[int | None] = [primary]
+    if ps == "one" or (ps == "auto" and primary is None):
+        return out
+    if ps == "auto":
+        extra = [auto_partner(cube.wavelengths_nm, primary)]  # type: ignore[arg-type]
+    else:
+        extra = [resolve_band(cube, b) for b in ps]  # type: ignore[union-attr]
+    for i in extra:
+        if i is not None and i not in out:
+            out.append(i)
+    return out
 
 
 def valid_mask(band: np.ndarray, nodata: float | None) -> np.ndarray:
@@ -185,9 +262,12 @@ def write_query_band(
     out_tif: str,
     out_json: str,
     percentiles: tuple[float, float] = (1.0, 99.0),
+    bands_spec: Any = "auto",
 ) -> dict[str, Any]:
-    """Rule query_band: select, mask and stretch the band; write band.tif (uint8, 0 = nodata)
-    in query geometry and band.json (what was chosen, stretch, valid fraction, time)."""
+    """Rule query_band: select, mask and stretch the band and the bands pooled with it; write
+    band.tif (uint8, 0 = nodata, in query geometry; band 1 = the primary band, then the pooled
+    ones, see ``pooled_indices``) and band.json (what was chosen, stretch, valid fraction, time;
+    ``pooled_bands``: one record per band of band.tif)."""
     import time
     import warnings
 
@@ -202,11 +282,28 @@ def write_query_band(
     if not mask.any():  # before writing anything: a failed step leaves no output
         raise InputError(image, f"band {band_spec} has no valid pixel", "check 'data ignore value'")
     u8, stretch = stretch_uint8(band, mask, *percentiles)
+    valid_fraction = float(mask.mean())
+    del band, mask  # one float band in memory at a time
+    stack = [u8]
+    pooled = [{**_band_record(info), "stretch": stretch, "valid_fraction": valid_fraction}]
+    for i in pooled_indices(cube, info["index"], bands_spec)[1:]:
+        b, m, bi = select_band(cube, BandSpec("index", i))
+        if not m.any():
+            log.warning("%s: pooled band %d has no valid pixel: not pooled", image, i)
+            continue
+        bu8, bst = stretch_uint8(b, m, *percentiles)
+        stack.append(bu8)
+        pooled.append({**_band_record(bi), "stretch": bst, "valid_fraction": float(m.mean())})
+        del b, m
+    log.info(
+        "query bands pooled: %s",
+        ", ".join(f"{p['index']} ({_nm(p['wavelength_nm'])})" for p in pooled),
+    )
     profile = {
         "driver": "GTiff",
         "width": cube.width,
         "height": cube.height,
-        "count": 1,
+        "count": len(stack),
         "dtype": "uint8",
         "nodata": 0,
         "compress": "deflate",
@@ -214,7 +311,8 @@ def write_query_band(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
         with atomic_path(out_tif) as tmp, rasterio.open(tmp, "w", **profile) as dst:
-            dst.write(u8, 1)
+            for k, plane in enumerate(stack, start=1):
+                dst.write(plane, k)
     meta = {
         "image": str(image),
         "cube": cube.describe(),
@@ -222,17 +320,27 @@ def write_query_band(
         "height": cube.height,
         "bands": cube.count,
         "band": info,
+        "bands_spec": bands_spec if isinstance(bands_spec, str) else list(bands_spec),
+        "pooled_bands": pooled,
         "gsd_m": gsd_m,
         "stretch": {"percentiles": list(percentiles), **stretch},
-        "valid_fraction": float(mask.mean()),
+        "valid_fraction": valid_fraction,
         "seconds": time.perf_counter() - t0,
     }
     write_json(out_json, meta)
     return meta
 
 
+def _band_record(info: dict[str, Any]) -> dict[str, Any]:
+    return {"index": info.get("index"), "wavelength_nm": info.get("wavelength_nm")}
+
+
+def _nm(v: float | None) -> str:
+    return "mean" if v is None else f"{v:.0f} nm"
+
+
 def read_query_band(path: str) -> np.ndarray:
-    """The stretched band written by ``write_query_band`` (uint8, 0 = nodata)."""
+    """The stretched primary band written by ``write_query_band`` (uint8, 0 = nodata)."""
     import warnings
 
     import rasterio
@@ -241,3 +349,16 @@ def read_query_band(path: str) -> np.ndarray:
         warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
         with rasterio.open(path) as src:
             return src.read(1)
+
+
+def read_query_bands(path: str) -> np.ndarray:
+    """Every band written by ``write_query_band``: (bands, rows, cols) uint8, the primary first
+    (a one-band file gives one plane: pooling degenerates to the primary band)."""
+    import warnings
+
+    import rasterio
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+        with rasterio.open(path) as src:
+            return src.read()

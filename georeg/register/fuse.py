@@ -321,7 +321,7 @@ def run_fuse_parts(
     from pathlib import Path
 
     from georeg.io.atomic import write_json
-    from georeg.register.band import feature_scales, read_query_band
+    from georeg.register.band import feature_scales, read_query_bands
     from georeg.register.geolocation import evaluate, write_geolocation
     from georeg.register.search import gsd_in_map_units, load_source
 
@@ -329,8 +329,8 @@ def run_fuse_parts(
     meta = json.loads(Path(band_json).read_text())
     parts = sorted((json.loads(Path(p).read_text()) for p in part_jsons), key=lambda p: p["part"])
     source = load_source(index_path, grid_path)
-    u8 = read_query_band(band_tif)
-    h, w = u8.shape
+    u8 = read_query_bands(band_tif)  # every pooled band, the primary first
+    h, w = u8.shape[-2:]
     gsd = gsd_in_map_units(meta.get("gsd_m"), source.crs_wkt)
     timings: dict[str, Any] = {
         "query_band": meta.get("seconds"),
@@ -362,6 +362,10 @@ def run_fuse_parts(
         "status": fused["status"],
         "query": meta.get("image"),
         "band": meta.get("band"),
+        "pooled_bands": [
+            {k: b.get(k) for k in ("index", "wavelength_nm")}
+            for b in meta.get("pooled_bands") or [meta.get("band") or {}]
+        ],
         "width": w,
         "height": h,
         "crs": source.crs_wkt,

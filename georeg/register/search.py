@@ -596,15 +596,16 @@ def run_search_part(
     seed: int,
     out_json: str,
 ) -> dict[str, Any]:
-    """Rule search_part: features of one along-track part, then the configured search."""
+    """Rule search_part: features of one along-track part (pooled over band.tif's bands), then
+    the configured search."""
     import json
 
     from georeg.io.atomic import write_json
-    from georeg.register.band import feature_scales, read_query_band
+    from georeg.register.band import feature_scales, read_query_bands
 
     t0 = time.perf_counter()
     meta = json.loads(Path(band_json).read_text())
-    u8 = read_query_band(band_tif)
+    u8 = read_query_bands(band_tif)  # every pooled band, the primary first
     source = load_source(index_path, grid_path)
     t_load = time.perf_counter() - t0
     gsd = gsd_in_map_units(meta.get("gsd_m"), source.crs_wkt)

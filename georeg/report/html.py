@@ -289,6 +289,18 @@ def parts_table(reg: Mapping[str, Any], ev: Mapping[str, Any]) -> str:
     )
 
 
+def pooled_text(pooled: Any) -> str | None:
+    """``registration.json``'s pooled bands as "1199.0 nm (39), 2200.0 nm (113)"."""
+    if not pooled:
+        return None
+    out = []
+    for b in pooled:
+        wl = b.get("wavelength_nm")
+        what = "mean" if b.get("index") is None else f"index {b['index']}"
+        out.append(f"{float(wl):.1f} nm ({what})" if wl is not None else what)
+    return ", ".join(out)
+
+
 def query_section(q: QueryInputs, reg: Mapping[str, Any], ev: Mapping[str, Any]) -> str:
     """One query: key numbers, parts table, figures."""
     name = html.escape(q.name)
@@ -305,6 +317,7 @@ def query_section(q: QueryInputs, reg: Mapping[str, Any], ev: Mapping[str, Any])
             if isinstance(reg.get("band"), dict) and reg["band"].get("wavelength_nm") is not None
             else reg.get("band"),
         ),
+        ("bands pooled (features)", pooled_text(reg.get("pooled_bands"))),
         ("size (cols x rows)", f"{reg.get('width')} x {reg.get('height')}"),
         ("strategy / acceptance", f"{reg.get('strategy')} / {reg.get('acceptance')}"),
         ("fusion method", (reg.get("fuse") or {}).get("method")),
