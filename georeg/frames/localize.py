@@ -1,12 +1,16 @@
 """Single-frame geo-localisation: one frame set -> poses.json, GeoJSON, KML, overlays.
 
-Per frame: read, undistort (known ``camera``), coarse location by the map index
-(``frame_coarse``), render-match-PnP iterations against the textured map (``frame_pnp``),
-optional intensity refinement (``frame_refine``), outputs (``frame_outputs``). A frame whose
-coarse search or PnP does not reach the inlier bounds is ``not_found`` (never an error).
+Per frame: read (EXIF orientation applied), reduced to the pyramid level below
+``max_frame_mpx`` (intrinsics scaled), undistorted (known ``camera``); direct 2-D/3-D matching
+against the map (the whole small map, else around the coarse location of ``frame_coarse``),
+verified; render-match-PnP (``frame_pnp``) and the intensity refinement (``frame_refine``) only
+when that pose verifies weak (``adaptive``) or there is none; the best verified hypothesis wins;
+outputs (``frame_outputs``). A frame whose hypotheses do not reach the bounds is ``not_found``
+(never an error).
 Unknown intrinsics (``camera: null``): the EXIF focal length of the file when it has one
 (``frame_exif``: 35 mm equivalent, focal length and focal-plane resolution, or focal length and
-the sensor width of a common drone camera; ``intrinsics.source`` = "exif", ``exif_tags``), else
+the sensor width of a common drone camera; ``intrinsics.source`` = "exif", ``exif_tags``; refitted
+on the best pose's guided inliers, ``exif_focal_refine``, kept only if it verifies higher), else
 the focal length is searched in the coarse PnP over ``focal_factors`` x the image width and
 refined on the render stage's inliers (``frame_focal``, ``focal_rounds``; ``focal`` in the
 record, with the fit's relative standard deviation: a nadir view of flat ground does not
@@ -288,9 +292,10 @@ def localize_image(
 
     Pose hypotheses, every one verified by the same score (``direct.verify``): the direct 2-D/3-D
     match in the map window around the coarse location (always tried), render-match-PnP from
-    the best pose so far, and the intensity refinement of the best. The highest score wins
-    (``path``, ``verification`` in the record); a frame is ``not_found`` only when no hypothesis
-    reaches ``min_inliers``."""
+    the best pose so far, and the intensity refinement of the best; the last two are skipped
+    after a direct pose verified strong (``adaptive``: score and residual bounds; recorded). The
+    highest score wins (``path``, ``verification`` in the record); a frame is ``not_found`` only
+    when no hypothesis reaches ``min_inliers``."""
     c = {**DEFAULTS, **(conf or {})}
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
