@@ -396,7 +396,8 @@ def localize_image(
         t = time.perf_counter()
         for p, cam, res in hyps[len(scored) :]:
             mt, tol = window_of(cam)
-            cam_p = polish(mt, cam, tol, int(vconf["polish_rounds"]), bool(vconf["polish_distinct"]))
+            rounds, distinct = int(vconf["polish_rounds"]), bool(vconf["polish_distinct"])
+            cam_p = polish(mt, cam, tol, rounds, distinct)
             v = verify(mt, cam_p, tol)
             v["polish_moved_m"] = float(np.linalg.norm(cam_p.C - cam.C))
             scored.append((p, cam_p, res, v))
