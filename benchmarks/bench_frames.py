@@ -238,7 +238,9 @@ def real_rows(case: str, work: Path, pan: bool = False, conf: dict | None = None
                     "ours": {"status": o["status"], "inliers": o.get("inliers"), "seconds": o["seconds"],
                              "errors": pose_errors(ob[1], ob[0], truth), "path": o.get("path"),
                              "score": (o.get("verification") or {}).get("score"),
-                             "timings_s": o.get("timings_s")}})  # fmt: skip
+                             "timings_s": o.get("timings_s"), "adaptive": o.get("adaptive"),
+                             "rms_px": (o.get("verification") or {}).get("rms_px"),
+                             "tolerance_px": (o.get("verification") or {}).get("tolerance_px")}})  # fmt: skip
     return out
 
 
@@ -277,16 +279,22 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--cases", nargs="+", default=["ngi", "odm"])
     ap.add_argument("--pan", action="store_true", help="also against a 1-band copy of each map")
     ap.add_argument("--work", type=Path, default=Path("/tmp/bench_frames_real"))
+    ap.add_argument("--conf", type=json.loads, default=None, help="frame_loc overrides (JSON)")
+    ap.add_argument("--json", type=Path, default=None, help="rows written here")
     a = ap.parse_args(argv[1:])
     if not FRAMES_DEV.is_dir():
         sys.exit(f"{FRAMES_DEV} is absent")
     rs = []
     for case in a.cases:
-        rs += real_rows(case, a.work / case)
+        rs += real_rows(case, a.work / case, conf=a.conf)
         if a.pan:
-            rs += real_rows(case, a.work / f"{case}_pan", pan=True)
+            rs += real_rows(case, a.work / f"{case}_pan", pan=True, conf=a.conf)
     real_table(rs)
     stage_table(rs)
+    tot = [r["ours"]["seconds"] for r in rs]
+    print(f"\nours: median {np.median(tot):.1f} s, max {np.max(tot):.1f} s over {len(tot)} frames")
+    if a.json:
+        a.json.write_text(json.dumps(rs, indent=1, default=float))
 
 
 if __name__ == "__main__":

@@ -2,12 +2,14 @@
 
 Each case's map (orthophoto + DEM/DSM) is built in a tmp dir as the workflow builds it
 (benchmarks/bench_frames.py ``build_case_map``), then every query frame is localised with the
-default settings except the stages after a verified direct pose (render-match-PnP and the
-intensity refinement, off: on these frames they reach the direct pose's score at best, and
-cost ~25 s a frame; the demo tests cover them). Bars: one map GSD in position, 0.5 deg in rotation (measured well inside, see
-docs/BENCHMARKS.md "Frame geo-localisation on real frames"). The same frames against a
-panchromatic (1-band) copy of the map orthophoto, and the drone frames against the map without
-its DSM (a flat ground), are checked too.
+default settings: the direct 2D-3D pose verifies strong on every one, so the adaptive pipeline
+skips render-match-PnP and the intensity refinement (they reached the direct pose's score at
+best on these frames, for ~25 s a frame; the demo tests cover them). Bars: one map GSD in
+position, 0.5 deg in rotation (measured well inside, see docs/BENCHMARKS.md "Frame
+geo-localisation on real frames"). The same frames against a panchromatic (1-band) copy of the
+map orthophoto, the drone frames against the map without its DSM (a flat ground), an odm frame
+upsampled to 11 Mpx and stored rotated (pyramid level, EXIF orientation), and the drone camera
+table are checked too.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 FRAMES_DEV = REPO.parent / "shared" / "data" / "frames_dev"
-CONF = {"refine": {"enabled": False}, "render_after_direct": False}
+CONF: dict = {}  # the defaults
 
 pytestmark = [
     pytest.mark.shared,
@@ -72,6 +74,8 @@ def test_real_frames_within_one_map_gsd(bench, case_map):
         assert rec["path"] in [c["path"] for c in v["candidates"]]
         assert v["score"] == max(c["score"] for c in v["candidates"])
         assert v["score"] > 100 * max(v["chance"], 1.0)  # far above what chance matches give
+        assert rec["adaptive"]["strong"] and "refine" not in rec and "pnp_attempts" not in rec
+        assert rec["timings_s"]["total_s"] < 30.0  # measured 6-9 s (2 shared cores)
         assert rec["ground"] == {"source": "dsm"}
 
 
@@ -122,3 +126,62 @@ def test_whole_map_direct_when_the_coarse_step_fails(bench, case_map):
     assert not rec["coarse"]["ok"] and rec["coarse"]["candidates"]  # the coarse step ran, failed
     assert rec["status"] == "registered" and rec["path"] == "direct 2D-3D (whole map)"
     assert pos < gsd and rot < 0.5
+
+
+def _upsampled_jpeg(src: Path, dst: Path, factor: int, orientation: int | None, tags: dict) -> None:
+    """``src`` upsampled ``factor`` x (bicubic), written as a JPEG; with EXIF ``orientation`` 6
+    the pixels are stored rotated 90 deg counter-clockwise (displayed upright); ``tags`` go to the
+    IFD0 (int keys < 0x8000) or the Exif IFD."""
+    import cv2
+    from PIL import Image
+
+    rgb = cv2.cvtColor(cv2.imread(str(src), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    if factor != 1:
+        rgb = cv2.resize(rgb, None, fx=factor, fy=factor, interpolation=cv2.INTER_CUBIC)
+    ex = Image.Exif()
+    if orientation == 6:
+        rgb = np.ascontiguousarray(np.rot90(rgb, 1))
+        ex[0x0112] = 6
+    for k, v in tags.items():
+        (ex if k < 0x8000 else ex.get_ifd(0x8769))[k] = v
+    Image.fromarray(rgb).save(dst, quality=92, exif=ex)
+
+
+def test_large_rotated_jpeg_on_a_pyramid_level(bench, case_map, tmp_path):
+    """An odm frame upsampled x3 (4104 x 2736 px, 11 Mpx), stored rotated with EXIF orientation 6,
+    intrinsics x3: read upright, localised on pyramid level 2 (1026 x 684 px, GSD 0.15 m, finer
+    than the map's 0.2 m; intrinsics / 4) within one map GSD, in about the time of the frame as it
+    came."""
+    case, maps, gsd = case_map
+    if case != "odm":
+        pytest.skip("the drone frames are the ones that come large")
+    frame, cam, truth = bench.case_frames(case)[1]
+    small = bench.ours(frame, cam, maps, CONF)
+    jpg = tmp_path / f"{frame.stem}_x3.jpg"
+    _upsampled_jpeg(frame, jpg, 3, 6, {})
+    cam3 = {"fx": cam["fx"] * 3, "fy": cam["fy"] * 3, "cx": (cam["cx"] + 0.5) * 3 - 0.5,
+            "cy": (cam["cy"] + 0.5) * 3 - 0.5, "dist": cam["dist"]}  # fmt: skip
+    rec = bench.ours(jpg, cam3, maps, CONF)
+    pos, rot = bench.pose_errors(rec.get("R_world_to_cam"), rec.get("camera_center_xyz"), truth)
+    print(rec["status"], rec["pyramid"], f"{pos:.3f} m {rot:.3f} deg", rec["timings_s"],
+          "small frame:", small["timings_s"])  # fmt: skip
+    assert rec["pyramid"]["full_size"] == [4104, 2736] and rec["pyramid"]["level"] == 2
+    assert rec["intrinsics"]["width"] == 1026
+    assert rec["intrinsics"]["fx"] == pytest.approx(0.75 * cam["fx"])
+    assert rec["status"] == "registered" and pos < gsd and rot < 0.5, (pos, rot)
+    assert rec["seconds"] < 1.5 * small["seconds"] + 3.0
+
+
+def test_unknown_drone_camera_focal_from_the_sensor_table(bench, tmp_path):
+    """camera: null, a JPEG with EXIF Make DJI, Model FC6310R, FocalLength 8.8 mm and no 35 mm
+    equivalent (the odm frames are 5472 px Phantom 4 frames reduced 4x): fx from the drone
+    sensor table (8.8 / 13.2 mm x 1368 px) within 1 % of the calibrated fx."""
+    from georeg.frames.exif import exif_camera
+
+    frame, cam, _ = bench.case_frames("odm")[0]
+    jpg = tmp_path / f"{frame.stem}.jpg"
+    _upsampled_jpeg(frame, jpg, 1, None, {0x010F: "DJI", 0x0110: "FC6310R", 37386: 8.8})
+    got = exif_camera(jpg, 1368, 912)
+    print(got, cam["fx"])
+    assert got["source"] == "exif" and "FC6310R" in got["exif_tags"]
+    assert got["fx"] == pytest.approx(cam["fx"], rel=0.01)

@@ -85,10 +85,12 @@ class Matches:
 
 def match_window(gray: np.ndarray, cam: PinholeCamera, ortho: str, dsm: str | None, feat_conf: dict,
                  map_gsd: float, z_ground: float, conf: dict, flat_z: float = 0.0,
-                 bounds: tuple | None = None, scale: float | None = None) -> Matches:  # fmt: skip
+                 bounds: tuple | None = None, scale: float | None = None,
+                 cache: dict | None = None) -> Matches:  # fmt: skip
     """Ratio matches of the frame (at about the map's GSD) against the dense map features of the
     window under the footprint of ``cam`` (grown by ``margin_frac`` / ``margin_m``). ``bounds``
-    and ``scale`` given (no pose known): that map window at its own GSD, the frame at that scale."""
+    and ``scale`` given (no pose known): that map window at its own GSD, the frame at that scale.
+    ``cache``: dense windows kept by (bounds, GSD, features) for the next frame of a set."""
     c = {**DEFAULTS, **(conf or {})}
     fconf = {**(feat_conf or {}), "upright": False, "max_features_per_mpx": None}
     if bounds is None:
@@ -102,8 +104,13 @@ def match_window(gray: np.ndarray, cam: PinholeCamera, ortho: str, dsm: str | No
     else:
         s, wgsd = float(scale or 1.0), None
     ff = frame_features(gray, s, fconf)
-    win = DenseWindow(ortho, dsm, bounds, fconf, gsd=wgsd, max_px=int(c["max_window_px"]),
-                      flat_z=flat_z)  # fmt: skip
+    key = (ortho, dsm, tuple(bounds), wgsd, int(c["max_window_px"]), flat_z, repr(sorted(fconf.items())))  # fmt: skip
+    win = cache.get(key) if cache is not None else None
+    if win is None:
+        win = DenseWindow(ortho, dsm, bounds, fconf, gsd=wgsd, max_px=int(c["max_window_px"]),
+                          flat_z=flat_z)  # fmt: skip
+        if cache is not None:
+            cache[key] = win
     if len(win) < 2 or len(ff.xy) == 0:
         e = np.zeros(0, np.int64)
         return Matches(win, ff, np.full(len(ff.xy), np.inf), np.zeros((0, 2)), np.zeros((0, 3)), e)
@@ -192,13 +199,14 @@ def polish(mt: Matches, cam: PinholeCamera, tol_px: float, rounds: int = 3,
 
 def direct_pose(gray: np.ndarray, cam0: PinholeCamera, ortho: str, dsm: str | None, feat_conf: dict,
                 map_gsd: float, z_ground: float, conf: dict | None = None, flat_z: float = 0.0,
-                bounds: tuple | None = None, scale: float | None = None,
+                bounds: tuple | None = None, scale: float | None = None, cache: dict | None = None,
                 ) -> tuple[DirectResult, Matches]:  # fmt: skip
     """PnP (MAGSAC++ + LM) on the direct matches in the map window around ``cam0`` (or in
     ``bounds``, the frame at ``scale``: only ``cam0``'s intrinsics are used then)."""
     c = {**DEFAULTS, **(conf or {})}
     t0 = time.perf_counter()
-    mt = match_window(gray, cam0, ortho, dsm, feat_conf, map_gsd, z_ground, c, flat_z, bounds, scale)
+    mt = match_window(gray, cam0, ortho, dsm, feat_conf, map_gsd, z_ground, c, flat_z, bounds, scale,
+                      cache)  # fmt: skip
     thr = float(c["reproj_px"])
     if bounds is None:
         gsd_frame = ground_distance(cam0, z_ground) / cam0.fx

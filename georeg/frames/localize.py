@@ -1,14 +1,19 @@
 """Single-frame geo-localisation: one frame set -> poses.json, GeoJSON, KML, overlays.
 
-Per frame: read, undistort (known ``camera``), coarse location by the map index
-(``frame_coarse``), render-match-PnP iterations against the textured map (``frame_pnp``),
-optional intensity refinement (``frame_refine``), outputs (``frame_outputs``). A frame whose
-coarse search or PnP does not reach the inlier bounds is ``not_found`` (never an error).
+Per frame: read (EXIF orientation applied), reduced to the pyramid level below
+``max_frame_mpx`` (intrinsics scaled), undistorted (known ``camera``); direct 2-D/3-D matching
+against the map (the whole small map, else around the coarse location of ``frame_coarse``),
+verified; render-match-PnP (``frame_pnp``) and the intensity refinement (``frame_refine``) only
+when that pose verifies weak (``adaptive``) or there is none; the best verified hypothesis wins;
+outputs (``frame_outputs``). A frame whose hypotheses do not reach the bounds is ``not_found``
+(never an error).
 Unknown intrinsics (``camera: null``): the EXIF focal length of the file when it has one
-(``frame_exif``: 35 mm equivalent, or focal length and focal-plane resolution; ``intrinsics.source``
-= "exif"), else the focal length is searched in the coarse PnP over ``focal_factors`` x the image
-width and refined on the render stage's inliers (``frame_focal``, ``focal_rounds``; ``focal`` in
-the record, with the fit's relative standard deviation: a nadir view of flat ground does not
+(``frame_exif``: 35 mm equivalent, focal length and focal-plane resolution, or focal length and
+the sensor width of a common drone camera; ``intrinsics.source`` = "exif", ``exif_tags``; refitted
+on the best pose's guided inliers, ``exif_focal_refine``, kept only if it verifies higher), else
+the focal length is searched in the coarse PnP over ``focal_factors`` x the image width and
+refined on the render stage's inliers (``frame_focal``, ``focal_rounds``; ``focal`` in the
+record, with the fit's relative standard deviation: a nadir view of flat ground does not
 determine it); principal point at the centre, no distortion, in both cases.
 """
 
@@ -29,13 +34,14 @@ from georeg.frames.direct import (
     Matches,
     direct_pose,
     ground_distance,
+    guided_matches,
     match_window,
     polish,
     verification_tolerance,
     verify,
 )
 from georeg.frames.exif import exif_camera
-from georeg.frames.focal import estimate_focal
+from georeg.frames.focal import estimate_focal, refine_focal
 from georeg.frames.outputs import (
     footprint_window,
     footprint_xy,
@@ -74,10 +80,44 @@ DEFAULTS: dict[str, Any] = {
     "vote_starts": 2,  # nadir-vote poses also tried as render-stage starts (after the coarse PnP)
     "refine_max_extra_px": 1.5,  # refined pose kept if the PnP inliers' RMS grows less than this
     "min_inliers": 15,  # PnP inliers of a hypothesis, and its verification score, to register
-    "render_after_direct": True,  # render-match-PnP also from a verified direct pose
+    "render_after_direct": True,  # render-match-PnP also from a verified direct pose ...
+    # ... and the intensity refinement, only when that pose's verification is weak (adaptive)
+    "adaptive": {"enabled": True, "strong_score": 100, "strong_rms_frac": 0.5},
     "direct": {},  # overrides of georeg.frames.direct.DEFAULTS (direct matching, verification)
     "overlay_alpha": 0.5,
+    "exif_focal_refine": True,  # an EXIF focal refit on the best pose's guided inliers (kept if better)
+    "max_frame_mpx": 2.0,  # a larger frame is localised on its pyramid level (halvings) below this
 }
+
+
+def pyramid_level(width: int, height: int, max_px: float) -> int:
+    """The number of halvings that bring a ``width`` x ``height`` frame to at most ``max_px``."""
+    n = float(width) * float(height)
+    return max(0, int(np.ceil(np.log2(n / float(max_px)) / 2))) if n > max_px > 0 else 0
+
+
+def scale_camera(camera: dict | None, sx: float, sy: float) -> dict | None:
+    """A ``camera`` dict for the image resized by (``sx``, ``sy``) (pixel centres kept:
+    c' = (c + 0.5) s - 0.5; distortion coefficients are in normalised coordinates, unchanged)."""
+    if not camera:
+        return camera
+    return {**camera, "fx": camera["fx"] * sx, "fy": camera["fy"] * sy,
+            "cx": (camera["cx"] + 0.5) * sx - 0.5, "cy": (camera["cy"] + 0.5) * sy - 0.5}  # fmt: skip
+
+
+def working_level(rgb: np.ndarray, camera: dict | None, max_mpx: float):
+    """(rgb, camera, pyramid record): a frame above ``max_mpx`` Mpx reduced by halvings (area
+    averaging) with its intrinsics scaled to match; unchanged below."""
+    h0, w0 = rgb.shape[:2]
+    lvl = pyramid_level(w0, h0, float(max_mpx) * 1e6)
+    info = {"level": lvl, "full_size": [w0, h0], "size": [w0, h0], "scale": 1.0}
+    if not lvl:
+        return rgb, camera, info
+    w, h = max(1, round(w0 / 2**lvl)), max(1, round(h0 / 2**lvl))
+    rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
+    info.update(size=[w, h], scale=w / w0)
+    log.info("frame %d x %d px: pyramid level %d (%d x %d px)", w0, h0, lvl, w, h)
+    return rgb, scale_camera(camera, w / w0, h / h0), info
 
 
 def camera_matrix(camera: dict | None, width: int, height: int, fx: float | None = None):
@@ -110,6 +150,7 @@ class MapSources:
         self.gsd = float(self.index.gsd_m or 1.0)
         self.dense = (self.ortho, self.dsm, self.flat_z) if dense_coarse else None
         self.coarse_index = self.index if self.dsm else FlatIndex(self.index, self.flat_z)
+        self.window_cache: dict = {}  # the whole (small) map's dense features, for every frame
 
     def ground_z(self, C: np.ndarray, radius: float = 150.0) -> float:
         """Median elevation of the map features within ``radius`` of C (x, y), the radius grown
@@ -141,21 +182,21 @@ class MapSources:
     def ground_distance(self, cam: PinholeCamera) -> float:
         return ground_distance(cam, self.ground_z(cam.C))
 
-    def cloud(self, bounds, source: str) -> PointCloud:
+    def cloud(self, bounds, source: str, max_px: int = 4_000_000) -> PointCloud:
         """The map cloud of a window (x0, y0, x1, y1): ``points`` (the LiDAR tiles) or the
-        height field of the mosaics."""
+        height field of the mosaics (decimated above ``max_px`` map pixels)."""
         if source == "points" and self.laz:
             return read_laz_cloud(self.laz, bounds)
-        return read_heightfield(self.ortho, self.dsm, bounds, flat_z=self.flat_z)
+        return read_heightfield(self.ortho, self.dsm, bounds, max_px=max_px, flat_z=self.flat_z)
 
-    def cloud_around(self, cam: PinholeCamera, c: dict) -> PointCloud:
+    def cloud_around(self, cam: PinholeCamera, c: dict, max_px: int = 4_000_000) -> PointCloud:
         """The map around the footprint of ``cam``: ``cloud_margin_m`` around it, at most
         ``max_cloud_extent_m`` or 1.5 x the footprint wide (a 6 km aerial footprint stays whole)."""
         zg = self.ground_z(cam.C)
         fp = footprint_xy(cam, zg)
         cap = max(float(c["max_cloud_extent_m"]), 1.5 * float(np.ptp(fp, axis=0).max()))
         b = footprint_window([cam], zg, float(c["cloud_margin_m"]), cap, centre=cam.C)
-        return self.cloud(b, c["render_source"])
+        return self.cloud(b, c["render_source"], max_px)
 
 
 class FlatIndex:
@@ -173,12 +214,15 @@ class FlatIndex:
         return f
 
 
-def display_render(cloud: PointCloud, cam: PinholeCamera, map_gsd: float) -> Render:
+def display_render(cloud: PointCloud, cam: PinholeCamera, map_gsd: float,
+                   dist: float | None = None) -> Render:  # fmt: skip
     """The map at ``cam`` for overlays: rendered at about the map's GSD (no splat blocks), then
-    upsampled to the frame (linear colour, nearest depth)."""
-    r0 = render(cloud, cam.scaled(min(1.0, 160 / cam.width)))
-    d = r0.depth[np.isfinite(r0.depth)]
-    dist = float(np.median(d)) if d.size else 100.0
+    upsampled to the frame (linear colour, nearest depth). ``dist``: the scene distance along
+    the axis when known (else the median depth of a small render)."""
+    if dist is None:
+        r0 = render(cloud, cam.scaled(min(1.0, 160 / cam.width)))
+        d = r0.depth[np.isfinite(r0.depth)]
+        dist = float(np.median(d)) if d.size else 100.0
     s = float(np.clip(dist / cam.fx / map_gsd, 0.1, 1.0))
     r = render(cloud, cam.scaled(s))
     size = (cam.width, cam.height)
@@ -215,6 +259,27 @@ def localize_frame(
     return localize_image(rgb, str(path), camera, maps, conf)
 
 
+def _refine_exif_focal(scored: list, window_of, rec: dict, max_sigma: float = 0.02) -> None:
+    """An EXIF focal length (nominal: lens rounding, a crop) fitted on the guided inliers of the
+    best pose (least squares over pose and focal, ``frame_focal.refine_focal``); the fit joins the
+    candidates when its relative sigma is below ``max_sigma`` and it verifies higher (same score)."""
+    p, cam, res, v0 = scored[0]
+    mt, tol = window_of(cam)
+    q, m = guided_matches(mt, cam, tol)
+    if len(q) < 12:
+        return
+    f, R, C, rms, sig = refine_focal(mt.map_xyz[m], mt.ff.xy[q], cam, loss_px=tol / 2)
+    cam_f = dataclasses.replace(cam, fx=f, fy=f * cam.fy / cam.fx, R=R, C=np.asarray(C, float))
+    v = verify(mt, cam_f, tol)
+    ok = bool(sig < max_sigma and v["score"] > v0["score"])
+    rec["focal"] = {"start_fx": float(cam.fx), "fx": float(f), "fx_rel_sigma": float(sig),
+                    "lsq_rms_px": float(rms), "score": v["score"], "start_score": v0["score"],
+                    "accepted": ok}  # fmt: skip
+    if ok:
+        scored.append((f"{p} + focal refinement", cam_f, res, v))
+        scored.sort(key=lambda t: -t[3]["score"])
+
+
 def _cam_record(cam: PinholeCamera) -> dict:
     return {"camera_center_xyz": [float(v) for v in cam.C], "R_world_to_cam": np.asarray(cam.R).tolist()}
 
@@ -227,12 +292,14 @@ def localize_image(
 
     Pose hypotheses, every one verified by the same score (``direct.verify``): the direct 2-D/3-D
     match in the map window around the coarse location (always tried), render-match-PnP from
-    the best pose so far, and the intensity refinement of the best. The highest score wins
-    (``path``, ``verification`` in the record); a frame is ``not_found`` only when no hypothesis
-    reaches ``min_inliers``."""
+    the best pose so far, and the intensity refinement of the best; the last two are skipped
+    after a direct pose verified strong (``adaptive``: score and residual bounds; recorded). The
+    highest score wins (``path``, ``verification`` in the record); a frame is ``not_found`` only
+    when no hypothesis reaches ``min_inliers``."""
     c = {**DEFAULTS, **(conf or {})}
     t0 = time.perf_counter()
     timings: dict[str, float] = {}
+    rgb, camera, pyr = working_level(rgb, camera, float(c["max_frame_mpx"]))
     h, w = rgb.shape[:2]
     rec: dict[str, Any] = {"image": str(path), "status": "not_found"}
     feat_conf = maps.index.meta.get("features_conf") or {}
@@ -248,7 +315,8 @@ def localize_image(
         t = time.perf_counter()
         cam0 = PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, np.eye(3), np.zeros(3))
         dr, mt = direct_pose(gray, cam0, maps.ortho, maps.dsm, feat_conf, maps.gsd, 0.0, vconf,
-                             maps.flat_z, maps.bounds(), min(1.0, float(np.sqrt(3e6 / (h * w)))))  # fmt: skip
+                             maps.flat_z, maps.bounds(), min(1.0, float(np.sqrt(3e6 / (h * w)))),
+                             maps.window_cache)  # fmt: skip
         windows.append(mt)
         rec.setdefault("direct_attempts", []).append({"start": "whole map", **dr.info})
         if dr.pnp.ok and dr.pnp.inliers >= min_inl:
@@ -282,6 +350,9 @@ def localize_image(
     rec["intrinsics"] = {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]),
                          "cy": float(K[1, 2]), "dist": [float(v) for v in dist], "width": w,
                          "height": h, "source": focal_note}  # fmt: skip
+    rec["pyramid"] = pyr  # the level the frame was localised on (intrinsics above: that level's)
+    if camera and camera.get("exif_tags"):
+        rec["intrinsics"]["exif_tags"] = camera["exif_tags"]  # which tags gave the focal
     rec["ground"] = ({"source": "dsm"} if maps.dsm else
                      {"source": "flat (no DSM given)", "z": maps.flat_z})  # fmt: skip
     rec["coarse"] = {"ok": co.ok, "inliers": co.inliers, "reason": co.reason,
@@ -308,9 +379,48 @@ def localize_image(
     if not hyps and not tried_whole and map_px <= int(vconf["whole_map_px"]):
         whole_map()
 
+    # every hypothesis is polished by LM on its guided matches over the whole frame, then scored
+    # (guided inliers, the same map window); the intensity refinement of the best must beat it
+    def window_of(cam: PinholeCamera) -> tuple[Matches, float]:
+        zg = maps.ground_z(cam.C)
+        mt = next((m for m in windows if m.contains(footprint_xy(cam, zg).mean(axis=0))), None)
+        if mt is None:
+            mt = match_window(gray, cam, maps.ortho, maps.dsm, feat_conf, maps.gsd, zg, vconf,
+                              maps.flat_z)  # fmt: skip
+            windows.append(mt)
+        return mt, verification_tolerance(cam, maps.gsd, zg, float(vconf["verify_px"]))
+
+    scored: list[tuple[str, PinholeCamera, Any, dict]] = []
+
+    def score_new() -> None:
+        t = time.perf_counter()
+        for p, cam, res in hyps[len(scored) :]:
+            mt, tol = window_of(cam)
+            rounds, distinct = int(vconf["polish_rounds"]), bool(vconf["polish_distinct"])
+            cam_p = polish(mt, cam, tol, rounds, distinct)
+            v = verify(mt, cam_p, tol)
+            v["polish_moved_m"] = float(np.linalg.norm(cam_p.C - cam.C))
+            scored.append((p, cam_p, res, v))
+        timings["verify_s"] = timings.get("verify_s", 0.0) + time.perf_counter() - t
+
+    # adaptive: a direct pose verified strong (many guided inliers, small residuals) is final;
+    # render-match-PnP and the intensity refinement run only after a weak one (or none). Not
+    # with a searched focal: the render stage refines it
+    ad = {**DEFAULTS["adaptive"], **(c.get("adaptive") or {})}
+    strong = False
+    if hyps and ad["enabled"] and camera:
+        score_new()
+        v = scored[0][3]
+        strong = v["score"] >= int(ad["strong_score"]) and (v["rms_px"] or np.inf) <= float(
+            ad["strong_rms_frac"]
+        ) * float(v["tolerance_px"])
+        rec["adaptive"] = {"direct_score": v["score"], "direct_rms_px": v["rms_px"],
+                           "strong": bool(strong), "skipped": ["render-match-PnP",
+                           "intensity refinement"] if strong else []}  # fmt: skip
+
     # 2. render-match-PnP from the direct pose (else from the coarse starts, as before)
     rstarts = [(hyps[0][1].R, hyps[0][1].C, "direct 2D-3D")] if hyps else starts
-    if hyps and not c["render_after_direct"]:
+    if hyps and (not c["render_after_direct"] or strong):
         rstarts = []
     cloud, cloud_at, fcam = None, None, None
     for R0, C0, how in rstarts:
@@ -334,30 +444,14 @@ def localize_image(
 
     if fcam is not None:  # the focal refined on the render stage's inliers holds for every pose
         hyps = [(p, dataclasses.replace(cm, fx=fcam.fx, fy=fcam.fy), r) for p, cm, r in hyps]
+        scored.clear()  # scored again at that focal
 
-    # 3. every hypothesis polished by LM on its guided matches over the whole frame, then scored
-    #    (guided inliers, the same map window); the intensity refinement of the best must beat it
-    t3 = time.perf_counter()
-
-    def window_of(cam: PinholeCamera) -> tuple[Matches, float]:
-        zg = maps.ground_z(cam.C)
-        mt = next((m for m in windows if m.contains(footprint_xy(cam, zg).mean(axis=0))), None)
-        if mt is None:
-            mt = match_window(gray, cam, maps.ortho, maps.dsm, feat_conf, maps.gsd, zg, vconf,
-                              maps.flat_z)  # fmt: skip
-            windows.append(mt)
-        return mt, verification_tolerance(cam, maps.gsd, zg, float(vconf["verify_px"]))
-
-    scored = []
-    for p, cam, res in hyps:
-        mt, tol = window_of(cam)
-        cam_p = polish(mt, cam, tol, int(vconf["polish_rounds"]), bool(vconf["polish_distinct"]))
-        v = verify(mt, cam_p, tol)
-        v["polish_moved_m"] = float(np.linalg.norm(cam_p.C - cam.C))
-        scored.append((p, cam_p, res, v))
-    timings["verify_s"] = time.perf_counter() - t3
+    # 3. every hypothesis scored; the intensity refinement of the best must beat it
+    score_new()
     scored.sort(key=lambda t: -t[3]["score"])
-    if scored and (c.get("refine") or {}).get("enabled", True):
+    if scored and camera and camera.get("source") == "exif" and c["exif_focal_refine"]:
+        _refine_exif_focal(scored, window_of, rec)
+    if scored and (c.get("refine") or {}).get("enabled", True) and not strong:
         from georeg.frames.refine import refine_pose
 
         p, cam, res, v0 = scored[0]
@@ -383,17 +477,19 @@ def localize_image(
         rec["pnp"] = {**_cam_record(base), "inliers": res.inliers,
                       "reprojection_px": res.reprojection_px}  # fmt: skip
         if cam.fx != K[0, 0]:
-            rec["intrinsics"].update(fx=float(cam.fx), fy=float(cam.fy),
-                                     source="estimated (focal search, then refined in PnP)")  # fmt: skip
+            how = ("exif, refined on the PnP inliers" if focal_note == "exif" else
+                   "estimated (focal search, then refined in PnP)")  # fmt: skip
+            rec["intrinsics"].update(fx=float(cam.fx), fy=float(cam.fy), source=how)
         z_med = float(np.median(res.inlier_xyz[:, 2])) if res.inlier_xyz is not None else maps.ground_z(cam.C)
         rec.update(status="registered", **_cam_record(cam), inliers=int(res.inliers),
                    reprojection_px=float(res.reprojection_px),
                    footprint_xy=footprint_xy(cam, z_med).tolist())  # fmt: skip
         rec.pop("reason", None)
         t5 = time.perf_counter()
-        if cloud is None or np.linalg.norm(np.asarray(cloud_at) - cam.C) > 0.05 * maps.ground_distance(cam):
-            cloud = maps.cloud_around(cam, c)
-        final_render = display_render(cloud, cam, maps.gsd)
+        dist = maps.ground_distance(cam)
+        if cloud is None or np.linalg.norm(np.asarray(cloud_at) - cam.C) > 0.05 * dist:
+            cloud = maps.cloud_around(cam, c, max_px=max(250_000, 2 * w * h))  # for display only
+        final_render = display_render(cloud, cam, maps.gsd, dist)
         timings["overlay_render_s"] = time.perf_counter() - t5
     else:
         best = max([v["score"] for _, _, _, v in scored], default=0)
