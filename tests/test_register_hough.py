@@ -116,3 +116,17 @@ def test_hough_regions_peak_on_the_map_edge(wide_map):
     )[0]
     cx, cy = tr @ (1536 - 100, 100)
     assert x0 <= cx <= x1 and y0 <= cy <= y1
+
+
+def test_hough_regions_unknown_gsd_votes_at_each_factor(wide_map):
+    """GSD unknown: features at several resize factors each vote at their own scale; the right
+    factor's votes find the place (zoom 1.25 -> true factor 0.8)."""
+    gray, tr, idx = wide_map
+    q = _warped_query(gray, 500, 700, 256, 60.0, 1.25)
+    qf = query_features(q, (0, 256), [0.6, 0.8, 1.0, 1.25], CONF)
+    assert set(np.unique(qf.factor)) == {0.6, 0.8, 1.0, 1.25}
+    src = MapSource.from_index(idx.path)
+    diag = float(np.hypot(256, 256) * 0.5 * 1.25)  # the largest assumed footprint
+    (x0, y0, x1, y1), _v = hough_regions(qf, idx, src.bounds, src.gsd_m, diag, 3)[0]
+    cx, cy = tr @ (700 + 128, 500 + 128)
+    assert x0 <= cx <= x1 and y0 <= cy <= y1
