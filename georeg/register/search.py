@@ -1,4 +1,4 @@
-"""Search the map for one part of the query: `paper` (random neighbourhoods) or `index` (TF-IDF).
+"""Search the map for one part of the query: `paper` (random places) or `index` (ranked regions).
 
 Every candidate region tried is recorded (centre, bounds, score, matches, inliers, NFA, accepted)
 so that a later stage can draw the search.
