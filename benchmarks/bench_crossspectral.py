@@ -263,8 +263,9 @@ METHODS: dict[str, dict[str, Any]] = {
     # the outside baseline: plain OpenCV SIFT, ratio 0.8, all matches, MAGSAC, > 5 inliers
     "sift_plain": {"ratio": 0.8, "max_matches": 0, "acceptance": {"mode": "paper"}},
     # the workflow (config/config.yaml register section) on plain map arrays: split plan, the
-    # search_part jobs (index strategy: 1-NN cell votes, top 8 candidates), whole-query
-    # fallback, fusion; "register" overrides the config
+    # search_part jobs (index strategy, register.index.rank: hough -- the Hough vote through
+    # exact nearest neighbours over all map features --, top 8 candidates), whole-query
+    # fallback, fusion; "pipeline" overrides the config
     # the paper's halves, always, each part's NFA counting its own candidates only (the
     # behaviour before the split plan)
     "wf_halves": {"pipeline": {"split": {**_FORCE_SPLIT, "count_searches": False}}},
@@ -278,6 +279,9 @@ METHODS: dict[str, dict[str, Any]] = {
     # the workflow's query stage exactly: `band: auto` (nearest 1200 nm: the ~1.6 um band here)
     # and `bands: auto` (+ the band nearest 2200 nm) -- the workflow default; and `bands: one`
     "wf_default": {"pipeline": {}, "bands": "auto"},
+    # the same with the ranking before the Hough vote on plain arrays (register.index.rank:
+    # tiles, which without an index means 1-NN votes of the query descriptors on footprint cells)
+    "wf_default_cellvote": {"pipeline": {"index": {"rank": "tiles"}}, "bands": "auto"},
     "wf_default_one": {"pipeline": {}, "bands": "one"},
     # one band chosen by wavelength (the nearest the scene has): which SWIR band alone
     "wf_band_1600nm": {"pipeline": {}, "bands": "1600nm"},

@@ -11,7 +11,7 @@ from test_index import CONF, _texture, _tile_image
 from georeg.index.map_index import MapIndex
 from georeg.index.vocabulary import build_vocabulary
 from georeg.register.hough import hough_regions, vote_centres
-from georeg.register.search import MapSource, index_candidates, query_features
+from georeg.register.search import MapSource, index_candidates, plain_nearest, query_features
 
 
 @pytest.fixture(scope="module")
@@ -130,3 +130,60 @@ def test_hough_regions_unknown_gsd_votes_at_each_factor(wide_map):
     (x0, y0, x1, y1), _v = hough_regions(qf, idx, src.bounds, src.gsd_m, diag, 3)[0]
     cx, cy = tr @ (700 + 128, 500 + 128)
     assert x0 <= cx <= x1 and y0 <= cy <= y1
+
+
+def _plain(idx, src):
+    """The indexed map's features as plain arrays (no index), with their keypoint geometry."""
+    return MapSource(
+        np.asarray(idx.xy), np.asarray(idx.desc), src.gsd_m, angle=np.asarray(idx.angle),
+        scale=np.asarray(idx.scale),
+    )  # fmt: skip
+
+
+def test_plain_nearest_is_exact(wide_map):
+    """On plain arrays knn_words compares every map feature: the index's exact knn."""
+    _g, _tr, idx = wide_map
+    plain = _plain(idx, MapSource.from_index(idx.path))
+    nn = plain_nearest(plain)
+    assert nn is plain_nearest(plain)  # built once per source
+    q = np.asarray(idx.desc[::997][:40])
+    cq, cf, d = nn.knn_words(q, k=3)
+    dist, fid = idx.knn(q, k=3)
+    assert np.array_equal(cq, np.repeat(np.arange(len(q)), 3))
+    np.testing.assert_allclose(d.reshape(-1, 3), dist, rtol=1e-4, atol=1e-3)
+    assert (fid[:, 0] == cf.reshape(-1, 3)[:, 0]).mean() > 0.95  # ties aside
+    # no keypoint geometry: no Hough vote possible
+    assert plain_nearest(MapSource(plain.xy, plain.desc, plain.gsd_m)) is None
+
+
+@pytest.mark.parametrize(("r0", "c0", "angle", "scale"), [(300, 420, 40.0, 1.0),
+                                                          (620, 1100, -110.0, 1.3)])  # fmt: skip
+def test_plain_arrays_rank_by_hough(wide_map, r0, c0, angle, scale):
+    """Plain map arrays (no index), rank hough: the true place is the first candidate region,
+    a footprint-sized square; rank tiles there: the 1-NN cell vote (whole cells + footprint)."""
+    gray, tr, idx = wide_map
+    size = 256
+    q = _warped_query(gray, r0, c0, size, angle, scale)
+    gsd = 0.5 / scale
+    qf = query_features(q, (0, size), [gsd / 0.5], CONF)
+    plain = _plain(idx, MapSource.from_index(idx.path))
+    diag = float(np.hypot(size, size) * gsd)
+    cx, cy = tr @ (c0 + size / 2, r0 + size / 2)
+    cands = index_candidates(qf, plain, diag, {"rank": "hough", "top_candidates": 4})
+    assert len(cands) == 4
+    (x0, y0, x1, y1), votes = cands[0]
+    assert x0 <= cx <= x1 and y0 <= cy <= y1
+    assert x1 - x0 < 2 * diag
+    for b, v in cands[1:]:
+        if np.hypot(0.5 * (b[0] + b[2]) - cx, 0.5 * (b[1] + b[3]) - cy) > diag:
+            assert v < 0.5 * votes
+    # the same regions as through the index with every word probed (exact neighbours both)
+    via_index = index_candidates(
+        qf,
+        MapSource.from_index(idx.path),
+        diag,
+        {"rank": "hough", "top_candidates": 1, "hough": {"nprobe": idx.n_words}},
+    )
+    np.testing.assert_allclose(via_index[0][0], cands[0][0], atol=0.5 * diag)
+    cell = index_candidates(qf, plain, diag, {"rank": "tiles", "top_candidates": 4})
+    assert cell and all(b[2] - b[0] >= 3 * diag - 1e-6 for b, _ in cell)

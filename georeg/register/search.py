@@ -1,4 +1,4 @@
-"""Search the map for one part of the query: `paper` (random neighbourhoods) or `index` (TF-IDF).
+"""Search the map for one part of the query: `paper` (random places) or `index` (ranked regions).
 
 Every candidate region tried is recorded (centre, bounds, score, matches, inliers, NFA, accepted)
 so that a later stage can draw the search.
@@ -9,7 +9,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +37,7 @@ class MapSource:
     index: Any = None  # georeg.index.map_index.MapIndex when loaded from disk
     angle: np.ndarray | None = None  # (n,) keypoint orientation (degrees), plain arrays only
     scale: np.ndarray | None = None  # (n,) keypoint diameter in map units, plain arrays only
+    _nn: Any = field(default=None, init=False, repr=False, compare=False)  # PlainNearest cache
 
     @classmethod
     def from_index(cls, path: str | Path) -> MapSource:
@@ -85,6 +86,58 @@ class MapSource:
     def take(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(xy float64, desc float32) of feature ids."""
         return np.asarray(self.xy[ids], np.float64), dequantize(np.asarray(self.desc[ids]))
+
+
+class PlainNearest:
+    """What ``georeg.register.hough.hough_regions`` needs of an index, for plain map arrays:
+    ``knn_words`` by an exact search over ALL map descriptors (faiss flat when small, FLANN
+    kd-tree above ``matching.FLAT_MAX``, as ``matching.knn2``) -- the same as probing every word of
+    an inverted file -- and the features' ``xy``, ``angle``, ``scale``."""
+
+    def __init__(self, source: MapSource) -> None:
+        self.xy = np.asarray(source.xy, np.float64)
+        self.angle = np.asarray(source.angle, np.float64)
+        self.scale = np.asarray(source.scale, np.float64)
+        self._desc = np.ascontiguousarray(dequantize(np.asarray(source.desc)), np.float32)
+        self._flat: Any = None
+
+    def knn_words(
+        self, query_desc: np.ndarray, k: int = 10, nprobe: int = 0
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The ``k`` nearest map features of each query descriptor (``nprobe`` unused: every
+        feature is compared). Flat arrays (query index, feature id, distance), nearest first."""
+        q = np.ascontiguousarray(dequantize(query_desc), np.float32)
+        n, m = len(q), len(self._desc)
+        kk = min(max(1, int(k)), m)
+        if n == 0 or m == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32)
+        if m <= matching.FLAT_MAX:
+            import faiss
+
+            if self._flat is None:
+                self._flat = faiss.IndexFlatL2(self._desc.shape[1])
+                self._flat.add(self._desc)
+            d2, ii = self._flat.search(q, kk)
+        else:
+            import cv2
+
+            if self._flat is None:
+                self._flat = cv2.flann_Index(self._desc, {"algorithm": 1, "trees": 4})
+            ii, d2 = self._flat.knnSearch(q, kk, params={"checks": 128})
+        ii = np.asarray(ii, np.int64)
+        cq = np.repeat(np.arange(n, dtype=np.int64), kk)
+        ok = ii.ravel() >= 0
+        d = np.sqrt(np.maximum(np.asarray(d2, np.float32).ravel(), 0.0))
+        return cq[ok], ii.ravel()[ok], d[ok]
+
+
+def plain_nearest(source: MapSource) -> PlainNearest | None:
+    """The cached ``PlainNearest`` of a plain-array source with keypoint geometry, else None."""
+    if source.index is not None or source.angle is None or source.scale is None:
+        return None
+    if source._nn is None:
+        source._nn = PlainNearest(source)
+    return source._nn
 
 
 # ----------------------------------------------------------------------------- query side
@@ -403,21 +456,24 @@ def index_candidates(
     qf: QueryFeatures, source: MapSource, diag_m: float, conf: dict[str, Any]
 ) -> list[tuple[Bounds, float | None]]:
     """Candidate regions, best first: ``rank`` hough (georeg.register.hough: nearest map
-    features vote for the query's centre), tiles (TF-IDF of visual words, each tile grown by the
-    part's footprint) or regions (TF-IDF over sliding windows)."""
+    features vote for the query's centre; on plain arrays through ``PlainNearest``), tiles
+    (TF-IDF of visual words, each tile grown by the part's footprint) or regions (TF-IDF over
+    sliding windows). Plain arrays without an index: ``tiles`` / ``regions``, or no keypoint
+    geometry, mean 1-NN votes of the query descriptors on footprint-sized cells."""
     top = int(conf.get("top_candidates", 8))
     rank = str(conf.get("rank", "hough"))
     if rank not in ("tiles", "regions", "hough"):
         raise ValueError(f"unknown register.index.rank {rank!r} (hough | tiles | regions)")
     g = diag_m
     out: list[tuple[Bounds, float | None]] = []
-    if source.index is not None and rank == "hough":
+    nn = source.index if source.index is not None else plain_nearest(source)
+    if nn is not None and rank == "hough":
         from georeg.register.hough import hough_regions
 
         out = [
             (b, s)
             for b, s in hough_regions(
-                qf, source.index, source.bounds, source.gsd_m, diag_m, top, conf.get("hough")
+                qf, nn, source.bounds, source.gsd_m, diag_m, top, conf.get("hough")
             )
         ]
         if len(out) >= top:
@@ -442,7 +498,8 @@ def index_candidates(
             h = g / 2
             out.append(((b[0] - h, b[1] - h, b[2] + h, b[3] + h), s))
         return out
-    # no index (plain arrays): 1-NN votes of the query descriptors on cells of the footprint size
+    # no index (plain arrays) and rank tiles / regions, or no keypoint geometry: 1-NN votes of
+    # the query descriptors on cells of the footprint size
     mb = source.bounds
     d, ii = matching.knn2(dequantize(np.asarray(source.desc)))(qf.desc)
     ok = ii[:, 0] >= 0
