@@ -201,7 +201,8 @@ def fig_search(q: QueryData, out: Path, dpi: int) -> str:
     if norm.vmin == norm.vmax:
         norm = Normalize(norm.vmin - 1, norm.vmax + 1)
     cmap = colormaps["viridis"]
-    what = "TF-IDF score" if by_score else "inliers"
+    rank = next((p.get("rank") for p in q.parts if p.get("rank")), "tiles")
+    what = ("Hough votes" if rank == "hough" else "TF-IDF score") if by_score else "inliers"
     for k, ax in enumerate(axes):
         part = q.parts[k] if k < len(q.parts) else {}
         pid = int(part.get("part", k))
