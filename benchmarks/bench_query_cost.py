@@ -42,28 +42,16 @@ def decision(reg: dict) -> tuple[float, float]:
 
 def outcome(reg: dict, truth_tif: str, map_px: float, bound_px: float = 5.0) -> str:
     """``success`` when the registration's homography puts the query's pixels within
-    ``bound_px`` map pixels of the truth at the median (on a 32 x 32 grid), else ``missed``
-    (the run's evaluation.json is not rerun here: it would wait for the products)."""
-    import warnings
-
-    import numpy as np
-    import rasterio
+    ``bound_px`` map pixels of the truth at the median (the evaluation's own error field; the
+    run's evaluation.json is not rerun here: it would wait for the products), else ``missed``."""
+    from georeg.report.evaluation import error_field, error_stats, map_xy, read_truth
 
     if reg.get("status") != "registered" or not reg.get("homography"):
         return "missed"
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        with rasterio.open(truth_tif) as ds:
-            tx, ty = ds.read(1), ds.read(2)
-    h, w = tx.shape
-    rr, cc = np.meshgrid(
-        np.linspace(0, h - 1, 32).astype(int), np.linspace(0, w - 1, 32).astype(int)
-    )
-    rr, cc = rr.ravel(), cc.ravel()
-    ok = np.isfinite(tx[rr, cc]) & np.isfinite(ty[rr, cc])
-    p = np.asarray(reg["homography"], float) @ np.vstack([cc[ok], rr[ok], np.ones(ok.sum())])
-    err = np.hypot(p[0] / p[2] - tx[rr, cc][ok], p[1] / p[2] - ty[rr, cc][ok]) / map_px
-    return "success" if float(np.median(err)) <= bound_px else "missed"
+    tx, ty = read_truth(truth_tif)
+    x, y = map_xy(reg["homography"], tx.shape[1], tx.shape[0])
+    median = error_stats(error_field(x, y, tx, ty), map_px).get("px", {}).get("median")
+    return "success" if median is not None and median <= bound_px else "missed"
 
 
 def run(work: Path, cfg: dict, queries: list[str]) -> float:

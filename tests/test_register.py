@@ -356,12 +356,10 @@ def default_register_conf() -> dict:
     return yaml.safe_load((REPO / "config" / "config.yaml").read_text())["register"]
 
 
-@pytest.mark.shared
-@pytest.mark.parametrize(("angle", "centre"), [(25.0, (257, 321)), (140.0, (176, 251))])
-def test_small_enmap_swir_query_registers_in_default_config(enmap, angle, centre):
-    """A 150 x 150 px EnMAP SWIR query (15 m, rotated) against the cube's own visible band."""
-    from georeg.register.fuse import register_query
-
+def _small_enmap_query(enmap, angle: float, centre: tuple[int, int]):
+    """The cube's 650 nm band as the map (float band, its mask, u8, MapSource) and a 150 x 150 px
+    crop of its 2200 nm band at 15 m, rotated by ``angle``, centred at ``centre``; Minv: query
+    px -> map px."""
     cube, tr = enmap
     vis, vm, _ = select_band(cube, "650nm")
     v8, _ = stretch_uint8(vis, vm)
@@ -371,8 +369,18 @@ def test_small_enmap_swir_query_registers_in_default_config(enmap, angle, centre
     q, Minv = warp_query(s8, 2.0, angle)
     c0, r0 = centre[0] - 75, centre[1] - 75
     q = np.ascontiguousarray(q[r0 : r0 + 150, c0 : c0 + 150])
+    return vis, vm, v8, src, q, Minv @ np.array([[1.0, 0, c0], [0, 1.0, r0], [0, 0, 1]])
+
+
+@pytest.mark.shared
+@pytest.mark.parametrize(("angle", "centre"), [(25.0, (257, 321)), (140.0, (176, 251))])
+def test_small_enmap_swir_query_registers_in_default_config(enmap, angle, centre):
+    """A 150 x 150 px EnMAP SWIR query (15 m, rotated) against the cube's own visible band."""
+    from georeg.register.fuse import register_query
+
+    tr = enmap[1]
+    *_, src, q, Minv = _small_enmap_query(enmap, angle, centre)
     assert q.shape == (150, 150) and (q > 0).mean() > 0.5
-    Minv = Minv @ np.array([[1.0, 0, c0], [0, 1.0, r0], [0, 0, 1]])
     conf = default_register_conf()
     res = register_query(q, src, conf, 15.0, [15.0 / 30.0], seed=3)
     assert res["status"] == "registered", res.get("reason")
@@ -429,16 +437,8 @@ def test_dense_search_registers_real_swir_and_rejects_an_unrelated_map(enmap):
     650 nm band with no feature search at all; the same query in a random texture is refused."""
     from georeg.register.dense import dense_register, dense_search, window_u8
 
-    cube, tr = enmap
-    vis, vm, _ = select_band(cube, "650nm")
-    v8, _ = stretch_uint8(vis, vm)
-    src = map_source(v8, vm, tr)
-    sw, sm, _ = select_band(cube, "2200nm")
-    s8, _ = stretch_uint8(sw, sm)
-    q, Minv = warp_query(s8, 2.0, 140.0)
-    c0, r0 = 176 - 75, 251 - 75
-    q = np.ascontiguousarray(q[r0 : r0 + 150, c0 : c0 + 150])
-    Minv = Minv @ np.array([[1.0, 0, c0], [0, 1.0, r0], [0, 0, 1]])
+    tr = enmap[1]
+    vis, vm, v8, src, q, Minv = _small_enmap_query(enmap, 140.0, (176, 251))
     r = dense_search(q, 0.5, v8, 10.0)
     assert r is not None and abs(((r.angle_deg - 140.0) + 180) % 360 - 180) <= 10.0
     assert r.log10_nfa < -3

@@ -17,6 +17,7 @@ from georeg.register import matching
 from georeg.register.search import (
     MapSource,
     QueryFeatures,
+    index_rank,
     query_features,
     search_count,
     search_one_part,
@@ -376,9 +377,7 @@ def run_fuse_parts(
         "residual_px": fused.get("residual_px"),
         "log10_nfa": fused.get("log10_nfa"),
         "strategy": reg_conf.get("strategy"),
-        "rank": (reg_conf.get("index") or {}).get("rank", "hough")
-        if reg_conf.get("strategy", "index") == "index"
-        else None,
+        "rank": index_rank(reg_conf),
         "acceptance": (reg_conf.get("acceptance") or {}).get("mode", "nfa"),
         "map_px_m": map_px,
         "feature_gsd_m": source.gsd_m,

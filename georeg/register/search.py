@@ -452,6 +452,17 @@ def paper_centres(bounds: Bounds, side: float, seed: int) -> np.ndarray:
     return c[rng.permutation(len(c))]
 
 
+#: how the ``index`` strategy ranks candidate regions (``register.index.rank``)
+RANKS = ("hough", "tiles", "regions")
+
+
+def index_rank(reg_conf: dict[str, Any]) -> str | None:
+    """The ranking a search with ``register`` config ``reg_conf`` uses (None for ``paper``)."""
+    if str(reg_conf.get("strategy", "index")) != "index":
+        return None
+    return str((reg_conf.get("index") or {}).get("rank", RANKS[0]))
+
+
 def index_candidates(
     qf: QueryFeatures, source: MapSource, diag_m: float, conf: dict[str, Any]
 ) -> list[tuple[Bounds, float | None]]:
@@ -461,8 +472,8 @@ def index_candidates(
     sliding windows). Plain arrays without an index: ``tiles`` / ``regions``, or no keypoint
     geometry, mean 1-NN votes of the query descriptors on footprint-sized cells."""
     top = int(conf.get("top_candidates", 8))
-    rank = str(conf.get("rank", "hough"))
-    if rank not in ("tiles", "regions", "hough"):
+    rank = str(conf.get("rank", RANKS[0]))
+    if rank not in RANKS:
         raise ValueError(f"unknown register.index.rank {rank!r} (hough | tiles | regions)")
     g = diag_m
     out: list[tuple[Bounds, float | None]] = []
@@ -583,7 +594,7 @@ def search_part(
             break
     out: dict[str, Any] = {
         "strategy": strategy,
-        "rank": str(conf.get("index", {}).get("rank", "hough")) if strategy == "index" else None,
+        "rank": index_rank(conf),
         "rows": [qf.origin[1], qf.origin[1] + qf.height],
         "width": qf.width,
         "query_features": len(qf),
