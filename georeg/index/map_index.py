@@ -597,7 +597,8 @@ class MapIndex:
             mh, mw = min(m, ny), min(m, nx)
             return s[mh:, mw:] - s[:-mh, mw:] - s[mh:, :-mw] + s[:-mh, :-mw]
 
-        v, nrm = box(votes), np.sqrt(box(norm_cells))
+        # box sums by cumsum differences can be -1e-16 where a window is empty
+        v, nrm = box(votes), np.sqrt(np.maximum(box(norm_cells), 0.0))
         score = np.divide(v, nrm * qn, out=np.zeros_like(v), where=nrm > 0)
         flat = np.flatnonzero(score > 0)
         order = flat[np.argsort(-score.ravel()[flat], kind="stable")]
