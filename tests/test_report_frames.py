@@ -80,6 +80,10 @@ def page(tmp_path_factory) -> tuple[Path, str, dict]:
         rec = _entry(f"v{i}", "registered", "registered", e, e, frame=i, keyframe=i % 10 == 0)
         rec["image"] = f"flight.mp4#{i}"
         rec["camera_center_xyz"] = (truth[i] + [e["horizontal_m"], 0, 0]).tolist()
+        if i % 30 == 0:  # keyframes 0, 30, 60, 90 were tried alone: two registered
+            alone = i % 60 == 0
+            rec["single_frame"] = {"status": "registered" if alone else "not_found",
+                                   "located_by_sequence_only": not alone}  # fmt: skip
         vposes.append(rec)
     (video / "poses.json").write_text(json.dumps(vposes))
     vtruth = [{"image": f"flight.mp4#{i}", "frame": i, "camera_center_xyz": truth[i].tolist()}
@@ -192,6 +196,7 @@ def test_video_set_gets_statistics_plot_and_few_overlays(page) -> None:
     errs = data["errs"]
     assert s["entries"] == 120 and s["registered"] == len(errs) == 112
     assert s["status_wrong"] == 8 and s["keyframes"] == 12
+    assert (s["single_tried"], s["single_registered"], s["sequence_only"]) == (4, 2, 2)
     pos = [e["position_m"] for e in errs]
     rot = [e["rotation_deg"] for e in errs]
     assert s["final_n"] == 112

@@ -56,6 +56,12 @@ def test_every_frame_located_against_truth(georeferenced, small_map):
     assert {p.get("source") for p in poses if p["status"] == "registered"} <= {
         "sfm", "tracking", "relocalisation"}
     assert not (out / ".work").exists()
+    # the keyframes tried alone (anchors) carry their single-frame result beside the sequence's
+    sf = info["single_frame"]
+    assert sf["tried"] == len(info["anchors"]) >= 1
+    assert sf["registered"] == sum(a["status"] == "registered" for a in info["anchors"]) >= 1
+    assert sf["located_by_sequence_only"] == sf["tried"] - sf["registered"]
+    assert sf["median_centre_diff_m"] < 3.0, sf  # both poses of a keyframe agree within ~3 map px
 
 
 def test_outputs_agree_with_poses(georeferenced):

@@ -174,3 +174,17 @@ def test_point_map_roundtrip(tmp_path):
     assert las.header.parse_crs().sub_crs_list[0].to_epsg() == 32611
     assert np.array_equal(np.load(dpath)[las.point_id], desc)
     assert np.all(las.track_len == 5)
+
+
+def test_single_frame_record_beside_the_sequence():
+    from georeg.trajectory.pipeline import single_frame_record, single_frame_summary
+
+    seq = {"status": "registered", "camera_center_xyz": [10.0, 0.0, 100.0]}
+    ok = single_frame_record({"status": "registered", "camera_center_xyz": [13.0, 4.0, 100.0],
+                              "inliers": 40}, seq)  # fmt: skip
+    assert ok["centre_diff_m"] == 5.0 and not ok["located_by_sequence_only"]
+    miss = single_frame_record({"status": "not_found", "reason": "no candidate verified"}, seq)
+    assert miss["located_by_sequence_only"] and "centre_diff_m" not in miss
+    poses = [{"single_frame": ok}, {"single_frame": miss}, {}]
+    assert single_frame_summary(poses) == {"tried": 2, "registered": 1, "located_by_sequence_only": 1,
+                                           "median_centre_diff_m": 5.0}  # fmt: skip

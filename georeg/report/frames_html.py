@@ -153,6 +153,13 @@ def video_summary(poses: list[dict[str, Any]], set_name: str) -> str:
               ("status not as expected", "status_wrong", wrong, 0)]  # fmt: skip
     if any("keyframe" in p for p in poses):
         counts.append(("keyframes", "keyframes", sum(bool(p.get("keyframe")) for p in poses), 0))
+    sf = [p["single_frame"] for p in poses if isinstance(p.get("single_frame"), dict)]
+    if sf:  # keyframes also tried by the single-frame method (a video's anchors)
+        counts += [("keyframes tried alone", "single_tried", len(sf), 0),
+                   ("registered alone", "single_registered",
+                    sum(r.get("status") == "registered" for r in sf), 0),
+                   ("located by the sequence only", "sequence_only",
+                    sum(bool(r.get("located_by_sequence_only")) for r in sf), 0)]  # fmt: skip
     counts.append(("s per entry, mean", "seconds_mean", float(np.mean(secs)) if secs else None, 2))
     sid = html.escape(set_name)
     out = table([c[0] for c in counts], [[cell(k, v, d) for _, k, v, d in counts]],

@@ -183,6 +183,7 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
     n_obs = np.array([len(p) for p in model.obs_point])
     order = _anchor_order(n_obs, int(c["anchor_tries"]))
     anchors, anchor_recs = [], []
+    single: dict[str, dict] = {}  # keyframe name -> its single-frame record
     for j in order:
         if len(anchors) >= int(c["anchors"]):
             break
@@ -191,6 +192,7 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
         rec, _ = localize_image(rgb, nm, cam_known, maps, frame_loc)
         anchor_recs.append({k: rec.get(k) for k in ("image", "status", "inliers", "reprojection_px",
                                                      "camera_center_xyz", "reason", "timings_s")})  # fmt: skip
+        single[nm] = rec
         if rec["status"] == "registered":
             anchors.append((nm, np.asarray(rec["R_world_to_cam"]), np.asarray(rec["camera_center_xyz"])))
     timings["anchors_s"] = time.perf_counter() - t0
@@ -280,6 +282,8 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
         else:
             rec.update(source=fp.source, camera_center_xyz=None, R_world_to_cam=None,
                        inliers=int(fp.inliers), reprojection_px=None)  # fmt: skip
+        if _kf_name(i) in single:  # this keyframe was also tried alone (as an anchor)
+            rec["single_frame"] = single_frame_record(single[_kf_name(i)], rec)
         rec["intrinsics"] = {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]),
                              "cy": float(K[1, 2]), "dist": list(map(float, (camera or {}).get("dist") or
                                                                      kf_dist)), "width": w, "height": h,
@@ -299,9 +303,32 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
     timings["frames_s"] = time.perf_counter() - t0
     info["frames_per_second"] = len(per_frame_s) / max(sum(per_frame_s), 1e-9)
     info["evaluation"] = _evaluate_set(poses, truth, model, kf_frame)
+    info["single_frame"] = single_frame_summary(poses)
     points = (xyz_map, model.rgb, model.track_len, model.descriptors)
     _write_outputs(out, poses, maps.crs_wkt, zg, points, info, int(c["look_every"]), timings, t_all)
     return poses
+
+
+def single_frame_record(single: dict, seq: dict) -> dict[str, Any]:
+    """What the single-frame method found for a keyframe beside the sequence's pose ``seq``:
+    its status and reason, and (both registered) how far apart the two camera centres are."""
+    out: dict[str, Any] = {"status": single.get("status"), "reason": single.get("reason"),
+                           "inliers": single.get("inliers")}  # fmt: skip
+    a, b = single.get("camera_center_xyz"), seq.get("camera_center_xyz")
+    if single.get("status") == "registered" and a is not None and b is not None:
+        out["centre_diff_m"] = round(float(np.linalg.norm(np.subtract(a, b))), 3)
+    out["located_by_sequence_only"] = single.get("status") != "registered" and seq["status"] == "registered"
+    return out
+
+
+def single_frame_summary(poses: list[dict]) -> dict[str, Any]:
+    """Keyframes tried alone: how many the single-frame method registered, how many only the
+    sequence located, and the median distance between both poses where both exist."""
+    recs = [p["single_frame"] for p in poses if "single_frame" in p]
+    diffs = [r["centre_diff_m"] for r in recs if "centre_diff_m" in r]
+    return {"tried": len(recs), "registered": sum(r["status"] == "registered" for r in recs),
+            "located_by_sequence_only": sum(bool(r["located_by_sequence_only"]) for r in recs),
+            "median_centre_diff_m": float(np.median(diffs)) if diffs else None}  # fmt: skip
 
 
 def _anchor_order(n_obs: np.ndarray, tries: int) -> list[int]:
