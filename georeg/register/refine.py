@@ -65,6 +65,7 @@ DEFAULTS: dict[str, Any] = {
     "seed": 0,
     "support_full_steps": 1.5,
     "support_zero_steps": 4.0,
+    "global_fit": {},  # georeg.register.densefit settings (enabled by default)
 }
 MODELS = ("per_line", "polynomial", "tps", "homography")
 
@@ -518,6 +519,14 @@ def refine(
     c = merged(conf)
     h, w = band.shape
     H = np.asarray(H, np.float64)
+    global_fit: dict[str, Any] | None = None
+    gconf = dict(c.get("global_fit") or {})
+    if gconf.get("enabled", True):
+        from georeg.register.densefit import dense_fit
+
+        # the global homography refitted to dense tie points over the whole footprint first:
+        # the local model then corrects only what no homography can, relative to that fit
+        H, global_fit = dense_fit(band, H, map_image, gconf, c)
     qvalid = (band > 0) if band.dtype == np.uint8 else np.isfinite(band)
     qf = cfog(band.astype(np.float32), qvalid, int(c["orientations"]), float(c["cfog_sigma_px"]))
     win, step, search = int(c["window_px"]), int(c["grid_step_px"]), int(c["search_px"])
@@ -530,7 +539,8 @@ def refine(
         raise ValueError(f"unknown refine model {requested!r} (expected auto or one of {MODELS})")
     model: Model = Model()
     D = np.zeros((h, w, 2))
-    info: dict[str, Any] = {"requested_model": requested, "grid_points": int(len(pts))}
+    info: dict[str, Any] = {"requested_model": requested, "grid_points": int(len(pts)),
+                            "global_fit": global_fit or {"enabled": False}}  # fmt: skip
     history: list[dict[str, Any]] = []
     before = None
     final = None
@@ -611,6 +621,7 @@ def refine(
         D = D * support[..., None]
     assert before is not None and final is not None
     x, y = apply_h(H, cols + D[..., 0], rows + D[..., 1])
+    info["homography"] = H.tolist()  # the global model under the local correction
     bm, bok = before["m"], before["ok"]
     fm, fok = final["m"], final["ok"]
     info.update(
@@ -713,6 +724,10 @@ def run_refine(
             "before_px": (reg.get("evaluation_global") or {}).get("px"),
             "after_px": reg["evaluation"].get("px"),
         }
+        if (info.get("global_fit") or {}).get("accepted"):
+            info["evaluation"]["global_fit_px"] = evaluate(
+                np.array(info["homography"]), truth, map_px
+            ).get("px")
     timings["refine"] = time.perf_counter() - t0
     write_json(out_json, reg)
     log.info("refinement: model %s, %d tie points, residual median %.3f -> %.3f query px",
