@@ -297,6 +297,11 @@ METHODS: dict[str, dict[str, Any]] = {
         "bands": "auto",
         "refine": {"global_fit": {"model": "affine"}},
     },
+    "wf_default_refined_homography": {
+        "pipeline": {},
+        "bands": "auto",
+        "refine": {"global_fit": {"model": "homography"}},
+    },
     "wf_default_cellvote": {"pipeline": {"index": {"rank": "tiles"}}, "bands": "auto"},
     "wf_default_one": {"pipeline": {}, "bands": "one"},
     # one band chosen by wavelength (the nearest the scene has): which SWIR band alone

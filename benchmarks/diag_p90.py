@@ -134,9 +134,11 @@ def analyse(path: str, variants: list[str], a_only: tuple[str, ...] = ()) -> Non
             f"cv {dinfo.get('cv_rms_px', {}).get('refit', 0):.2f}/"
             f"{dinfo.get('cv_rms_px', {}).get('feature', 0):.2f}"
         )
-        Ha, ainfo = dense_fit(band, r["H"], mi, {"model": "affine"}, rconf)
-        xa, ya = map_xy(Ha, w, h)
-        line += f" | affine {'ok' if ainfo['accepted'] else 'NO'} {st(err_at(xa, ya, q, g))}"
+        for model in ("affine", "auto"):
+            Ha, ainfo = dense_fit(band, r["H"], mi, {"model": model}, rconf)
+            xa, ya = map_xy(Ha, w, h)
+            line += (f" | {model} {'ok' if ainfo['accepted'] else 'NO'} "
+                     f"{ainfo.get('model', '-')[:3]} {st(err_at(xa, ya, q, g))}")  # fmt: skip
         for v in variants:
             conf = {**rconf, **extra.get(v, {})} if v != "default" else rconf
             xr, yr, info = refine(band, Hd if v == "dense+local" else r["H"], mi, conf)
@@ -224,6 +226,6 @@ if __name__ == "__main__":
     if a.cmd == "run":
         run(a.half, a.out)
     elif a.cmd == "analyse":
-        analyse(a.arg, ["dense+local"])
+        analyse(a.arg, [])
     elif a.cmd == "truth":
         truth_check()

@@ -34,7 +34,7 @@ DEFAULTS: dict[str, Any] = {
     "cv_folds": 5,  # spatially blocked folds of the guard
     "min_gain": 0.05,  # the refit's CV residual must be this fraction below the feature fit's
     "converged_px": 0.05,  # stop when the footprint moves less than this (query px)
-    "model": "homography",  # homography | affine (the refit's degrees of freedom)
+    "model": "auto",  # auto (affine unless the homography's CV wins by min_gain) | homography | affine
 }
 
 
@@ -61,7 +61,7 @@ def fit_homography_lsq(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = 
     A2 = np.c_[z, a, o, -b[:, 1:] * a, -b[:, 1:]]
     sw = np.sqrt(np.ones(n) if w is None else np.asarray(w, float))
     A = np.r_[A1 * sw[:, None], A2 * sw[:, None]]
-    h = np.linalg.svd(A)[2][-1].reshape(3, 3)
+    h = np.linalg.svd(A, full_matrices=False)[2][-1].reshape(3, 3)
     H = np.linalg.inv(Td) @ h @ Ts
     return H / H[2, 2]
 
@@ -83,7 +83,7 @@ def _fit(src: np.ndarray, dst: np.ndarray, w: np.ndarray, model: str) -> np.ndar
         return fit_affine_lsq(src, dst, w)
     if model == "homography":
         return fit_homography_lsq(src, dst, w)
-    raise ValueError(f"unknown global_fit model {model!r} (expected homography or affine)")
+    raise ValueError(f"unknown global_fit model {model!r} (expected homography, affine or auto)")
 
 
 def _px_scale(H: np.ndarray, width: int, height: int) -> float:
@@ -119,33 +119,41 @@ def robust_fit(src: np.ndarray, dst: np.ndarray, w: np.ndarray, px: float,
 
 
 def blocked_cv(src: np.ndarray, dst: np.ndarray, w: np.ndarray, H0: np.ndarray, px: float,
-               block: float, c: dict[str, Any], seed: int = 0) -> dict[str, float]:  # fmt: skip
-    """Held-out residual RMS (query px) of the refit and of ``H0`` on the same points.
+               block: float, c: dict[str, Any], seed: int = 0,
+               models: tuple[str, ...] = ()) -> dict[str, float]:  # fmt: skip
+    """Held-out residual RMS (query px) of the refit (each of ``models``, default ``c["model"]``)
+    and of ``H0`` (key ``feature``) on the same points.
 
     Tie points are grouped in square blocks of ``block`` px that go to ``cv_folds`` folds at
-    random; each fold is predicted by the homography fitted (robustly) without it. Points the
-    fit of the other folds rejects as outliers are left out of both figures."""
+    random; each fold is predicted by the model fitted (robustly) without it. Points that the
+    first model's fit of the other folds rejects as outliers are left out of every figure."""
+    models = models or (str(c["model"]),)
     k = max(2, int(c["cv_folds"]))
     bid = (src[:, 0] // block).astype(int) * 100003 + (src[:, 1] // block).astype(int)
     ub, inv = np.unique(bid, return_inverse=True)
     fold = (np.random.default_rng(seed).permutation(len(ub)) % k)[inv]
-    e_fit, e_h0 = [], []
+    errs: dict[str, list[np.ndarray]] = {m: [] for m in (*models, "feature")}
     for f in range(k):
         test = fold == f
         if test.sum() == 0 or (~test).sum() < 8:
             continue
-        H, _ = robust_fit(src[~test], dst[~test], w[~test], px, c)
-        r1 = residuals_px(H, src[test], dst[test], px)
-        r0 = residuals_px(H0, src[test], dst[test], px)
+        r = {}
+        for m in models:
+            H, _ = robust_fit(src[~test], dst[~test], w[~test], px, {**c, "model": m})
+            r[m] = residuals_px(H, src[test], dst[test], px)
+        r["feature"] = residuals_px(H0, src[test], dst[test], px)
+        r1 = r[models[0]]
         bound = max(float(c["reject_sigma"]) * 1.4826 * float(np.median(r1)),
                     float(c["reject_floor_px"]))  # fmt: skip
         ok = r1 <= bound
-        e_fit.append(r1[ok])
-        e_h0.append(r0[ok])
-    if not e_fit:
-        return {"refit": float("inf"), "feature": float("inf")}
-    a, b = np.concatenate(e_fit), np.concatenate(e_h0)
-    return {"refit": float(np.sqrt(np.mean(a**2))), "feature": float(np.sqrt(np.mean(b**2)))}
+        for m, v in r.items():
+            errs[m].append(v[ok])
+    out = {}
+    for m, v in errs.items():
+        a = np.concatenate(v) if v else np.zeros(0)
+        out[m] = float(np.sqrt(np.mean(a**2))) if a.size else float("inf")
+    out["refit"] = out[models[0]]
+    return out
 
 
 def cover_fraction(pts: np.ndarray, valid: np.ndarray) -> float:
@@ -181,6 +189,11 @@ def dense_fit(
 
     t0 = time.perf_counter()
     c = merged(conf)
+    requested = str(c["model"])
+    if requested not in ("homography", "affine", "auto"):
+        raise ValueError(f"unknown global_fit model {requested!r}")
+    if requested == "auto":  # iterate with the affine map, then choose by blocked CV
+        c["model"] = "affine"
     rc = refine_merged(refine_conf)
     H0 = np.asarray(H, np.float64)
     h, w = band.shape
@@ -235,7 +248,16 @@ def dense_fit(
         return H0, info
     src, dst, wts, keep = last
     cover = cover_fraction(src[keep], qvalid)
-    cv = blocked_cv(src, dst, wts, H0, px, 2.0 * win, c, int(rc.get("seed", 0)))
+    seed = int(rc.get("seed", 0))
+    if requested == "auto":
+        cv = blocked_cv(src, dst, wts, H0, px, 2.0 * win, c, seed, ("affine", "homography"))
+        if cv["homography"] < (1 - float(c["min_gain"])) * cv["affine"]:
+            c["model"] = "homography"
+            Hc, keep = robust_fit(src, dst, wts, px, c)
+            cv["refit"] = cv["homography"]
+    else:
+        cv = blocked_cv(src, dst, wts, H0, px, 2.0 * win, c, seed)
+    info["model"] = str(c["model"])
     moved = residuals_px(Hc, corners, np.c_[apply_h(H0, corners[:, 0], corners[:, 1])], px)
     info.update(
         tie_points=int(len(src)),
