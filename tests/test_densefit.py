@@ -120,3 +120,20 @@ def test_affine_model(scene):
     H, info = dense_fit(scene["band"], scene["H0"], scene["map"], {"model": "affine"}, {})
     assert info["accepted"] and np.allclose(H[2], [0, 0, 1])
     assert np.percentile(_err(H, scene["truth"]), 90) < 0.3
+
+
+def test_auto_takes_the_homography_when_the_view_has_perspective(scene):
+    """A query seen through a homography with perspective (4 % scale change across the
+    footprint): ``auto`` must pick the homography over the affine map by its blocked CV."""
+    P = np.array([[1.0, 0, 0], [0, 1.0, 0], [2e-4, 1e-4, 1.0]])
+    H = scene["H"] @ P
+    tx, ty = map_xy(H, W, HGT)
+    rng = np.random.default_rng(2)
+    q = 255.0 - scene["map"].render(tx, ty) + rng.normal(0, 3.0, (HGT, W))
+    band = np.clip(np.nan_to_num(q, nan=0.0), 0, 255).astype(np.uint8)
+    H0 = H @ _similarity_about((30.0, 30.0), 1.012, 0.5)
+    Hf, info = dense_fit(band, H0, scene["map"], {"model": "auto"}, {})
+    assert info["accepted"] and info["model"] == "homography", info["cv_rms_px"]
+    x, y = map_xy(Hf, W, HGT)
+    e = np.hypot(x - tx, y - ty)
+    assert np.percentile(e, 90) < 0.3, np.percentile(e, 90)
