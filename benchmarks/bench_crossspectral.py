@@ -297,6 +297,12 @@ METHODS: dict[str, dict[str, Any]] = {
         "bands": "auto",
         "refine": {"global_fit": {"model": "affine"}},
     },
+    # a stricter guard: the refit's blocked-CV residual 10 % below the feature homography's
+    "wf_default_refined_gain10": {
+        "pipeline": {},
+        "bands": "auto",
+        "refine": {"global_fit": {"min_gain": 0.1}},
+    },
     "wf_default_refined_homography": {
         "pipeline": {},
         "bands": "auto",

@@ -216,6 +216,36 @@ def _same_date_to_map(city: str, rev: bool):
     return f
 
 
+def compare(path: str, base: str = "wf_default") -> None:
+    """Per query of a bench_crossspectral.py JSON: p90 / max of every method beside ``base``,
+    and per method and half how many registered queries end worse than ``base`` (p90 or max
+    more than 0.25 px higher)."""
+    import json
+
+    rows = json.loads(Path(path).read_text())["rows"]
+    methods = list(rows)
+    by = {m: {r["query"]: r for r in rows[m] if r["positive"]} for m in methods}
+    for q, r0 in by[base].items():
+        if r0["outcome"] != "success":
+            continue
+        cells = [f"{m}: {by[m][q]['p90_px']:.2f}/{by[m][q]['max_px']:.2f}" for m in methods
+                 if by[m][q]["outcome"] == "success"]  # fmt: skip
+        print(f"{r0['half'][:5]} {q:28s} " + " | ".join(cells))
+    for m in methods:
+        for half in ("tuning", "checking"):
+            ok = [q for q, r in by[m].items() if r["half"] == half and r["outcome"] == "success"]
+            worse = [q for q in ok if by[base][q]["outcome"] == "success" and (
+                by[m][q]["p90_px"] > by[base][q]["p90_px"] + 0.25
+                or by[m][q]["max_px"] > by[base][q]["max_px"] + 0.25)]  # fmt: skip
+            p90 = np.array([by[m][q]["p90_px"] for q in ok])
+            mx = np.array([by[m][q]["max_px"] for q in ok])
+            print(
+                f"{m:32s} {half:8s} registered {len(ok)} p90<=2 {int((p90 <= 2).sum())} "
+                f"median p90 {np.median(p90):.2f} median max {np.median(mx):.2f} "
+                f"worse than {base} (>0.25 px p90 or max): {len(worse)} {worse}"
+            )
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("cmd")
@@ -227,5 +257,7 @@ if __name__ == "__main__":
         run(a.half, a.out)
     elif a.cmd == "analyse":
         analyse(a.arg, [])
+    elif a.cmd == "compare":
+        compare(a.arg)
     elif a.cmd == "truth":
         truth_check()
