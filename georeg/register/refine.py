@@ -20,6 +20,11 @@ pixel along and across track. This module corrects it with tie points measured a
    (thin-plate spline with smoothing) and ``homography`` (D = 0). ``auto`` picks the model with
    the lowest k-fold cross-validated tie-point residual (it must beat ``homography`` by
    ``auto_min_gain``). Fewer than ``min_tie_points`` accepted points: the homography is kept.
+   Before step 3 (``global_fit``, georeg.register.densefit, issue 20) the global map itself is
+   refitted to the tie points of the whole footprint and kept only if its blocked CV beats the
+   feature homography; a local model then acts only where its own blocked CV beats the global
+   fit (``cv_guard``) and tie points support it (``support_*``), and ``auto`` needs a gain of
+   ``auto_min_gain_px`` too: the refinement never extrapolates a local model.
 4. Window averaging attenuates fast jitter, so steps 1-3 are iterated (``iterations``): each pass
    measures the residual shift against the current refined mapping and refits the total.
    A last measurement pass against the final mapping gives the residuals "after".
