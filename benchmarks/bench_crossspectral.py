@@ -297,7 +297,12 @@ METHODS: dict[str, dict[str, Any]] = {
         "bands": "auto",
         "refine": {"global_fit": {"model": "affine"}},
     },
-    # a stricter guard: the refit's blocked-CV residual 10 % below the feature homography's
+    # the refit's guard at 5 % (the first candidate) and 10 % (the default since issue 20)
+    "wf_default_refined_gain05": {
+        "pipeline": {},
+        "bands": "auto",
+        "refine": {"global_fit": {"min_gain": 0.05}},
+    },
     "wf_default_refined_gain10": {
         "pipeline": {},
         "bands": "auto",
@@ -306,7 +311,7 @@ METHODS: dict[str, dict[str, Any]] = {
     "wf_default_refined_homography": {
         "pipeline": {},
         "bands": "auto",
-        "refine": {"global_fit": {"model": "homography"}},
+        "refine": {"global_fit": {"model": "homography", "min_gain": 0.05}},
     },
     "wf_default_cellvote": {"pipeline": {"index": {"rank": "tiles"}}, "bands": "auto"},
     "wf_default_one": {"pipeline": {}, "bands": "one"},

@@ -32,7 +32,7 @@ DEFAULTS: dict[str, Any] = {
     "reject_sigma": 3.0,  # outlier bound: this many robust sigmas of the residuals ...
     "reject_floor_px": 0.75,  # ... but never below this (query px)
     "cv_folds": 5,  # spatially blocked folds of the guard
-    "min_gain": 0.05,  # the refit's CV residual must be this fraction below the feature fit's
+    "min_gain": 0.1,  # the refit's CV residual must be this fraction below the feature fit's
     "converged_px": 0.05,  # stop when the footprint moves less than this (query px)
     "model": "auto",  # auto (affine unless the homography's CV wins by min_gain) | homography | affine
 }

@@ -73,7 +73,7 @@ DEFAULTS: dict[str, Any] = {
     "support_zero_steps": 4.0,
     "cv_guard": True,
     "cv_guard_sigma_steps": 3.0,
-    "cv_guard_full_gain": 0.2,
+    "cv_guard_full_gain": 0.05,
     "global_fit": {},  # georeg.register.densefit settings (enabled by default)
 }
 MODELS = ("per_line", "polynomial", "tps", "homography")
