@@ -97,6 +97,21 @@ def test_support_weight_full_near_tie_points_zero_far_away():
     assert support_weight(np.zeros((0, 2)), 50, 20, 5.0, 0.0).min() == 1.0
 
 
+def test_cv_guard_weight_follows_the_held_out_residuals():
+    """Left half: the local model's held-out residuals are a third of the global fit's; right
+    half: twice them. The correction keeps full weight on the left and none on the right."""
+    from georeg.register.refine import cv_guard_weight
+
+    cc, rr = np.meshgrid(np.arange(6.0, 200, 12), np.arange(6.0, 100, 12))
+    pts = np.column_stack([cc.ravel(), rr.ravel()])
+    eg = np.full(len(pts), 1.0)
+    em = np.where(pts[:, 0] < 100, 0.33, 2.0)
+    g = cv_guard_weight(pts, em, eg, 200, 100, 36.0, 0.2)
+    assert g.shape == (100, 200)
+    assert g[:, :40].min() > 0.99 and g[:, 160:].max() < 0.01
+    assert np.all(np.diff(g[50]) <= 1e-6)  # monotone across the boundary
+
+
 def test_local_model_fades_to_the_global_fit_where_no_tie_point_supports_it(pair):
     band = pair["band"].copy()
     band[200:] = 128  # the last third of the lines: no structure, no tie point

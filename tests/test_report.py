@@ -372,6 +372,7 @@ def test_summary_numbers_equal_the_json(run_dir: Path) -> None:
         err = ev.get("error") or {}
         assert val("error_median_px") == (err.get("px") or {}).get("median")
         assert val("error_p90_px") == (err.get("px") or {}).get("p90")
+        assert val("error_max_px") == (err.get("px") or {}).get("max")
         assert val("error_median_m") == (err.get("m") or {}).get("median")
         assert val("error_p90_m") == (err.get("m") or {}).get("p90")
         assert val("time_s") == pytest.approx(query_seconds(reg))

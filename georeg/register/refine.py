@@ -20,6 +20,11 @@ pixel along and across track. This module corrects it with tie points measured a
    (thin-plate spline with smoothing) and ``homography`` (D = 0). ``auto`` picks the model with
    the lowest k-fold cross-validated tie-point residual (it must beat ``homography`` by
    ``auto_min_gain``). Fewer than ``min_tie_points`` accepted points: the homography is kept.
+   Before step 3 (``global_fit``, georeg.register.densefit, issue 20) the global map itself is
+   refitted to the tie points of the whole footprint and kept only if its blocked CV beats the
+   feature homography; a local model then acts only where its own blocked CV beats the global
+   fit (``cv_guard``) and tie points support it (``support_*``), and ``auto`` needs a gain of
+   ``auto_min_gain_px`` too: the refinement never extrapolates a local model.
 4. Window averaging attenuates fast jitter, so steps 1-3 are iterated (``iterations``): each pass
    measures the residual shift against the current refined mapping and refits the total.
    A last measurement pass against the final mapping gives the residuals "after".
@@ -61,10 +66,15 @@ DEFAULTS: dict[str, Any] = {
     "tps_max_points": 1500,
     "cv_folds": 5,
     "auto_min_gain": 0.05,
+    "auto_min_gain_px": 0.05,
     "auto_models": ["per_line", "polynomial"],
     "seed": 0,
     "support_full_steps": 1.5,
     "support_zero_steps": 4.0,
+    "cv_guard": True,
+    "cv_guard_sigma_steps": 3.0,
+    "cv_guard_full_gain": 0.05,
+    "global_fit": {},  # georeg.register.densefit settings (enabled by default)
 }
 MODELS = ("per_line", "polynomial", "tps", "homography")
 
@@ -453,6 +463,14 @@ def make_model(name: str, width: int, height: int, c: dict[str, Any]) -> Model:
 def cross_validate(name: str, pts: np.ndarray, d: np.ndarray, w: np.ndarray, width: int,
                    height: int, c: dict[str, Any]) -> float:  # fmt: skip
     """k-fold cross-validated RMS tie-point residual (query px) of a model."""
+    err = held_out_errors(name, pts, d, w, width, height, c)
+    return float(np.sqrt(np.mean(err**2)))
+
+
+def held_out_errors(name: str, pts: np.ndarray, d: np.ndarray, w: np.ndarray, width: int,
+                    height: int, c: dict[str, Any]) -> np.ndarray:  # fmt: skip
+    """Per tie point: |residual| (query px) when predicted by the model fitted without its
+    spatially blocked fold."""
     k = max(2, int(c["cv_folds"]))
     # spatial blocks (2 windows square) go to folds at random: neighbouring tie points share
     # pixels, so leaving single points out would favour interpolating models
@@ -466,7 +484,31 @@ def cross_validate(name: str, pts: np.ndarray, d: np.ndarray, w: np.ndarray, wid
         test = fold == f
         m = make_model(name, width, height, c).fit(pts[~test], d[~test], w[~test])
         err[test] = np.hypot(*(d[test] - m(pts[test, 0], pts[test, 1])).T)
-    return float(np.sqrt(np.mean(err**2)))
+    return err
+
+
+def cv_guard_weight(pts: np.ndarray, err_model: np.ndarray, err_global: np.ndarray, width: int,
+                    height: int, sigma: float, full_gain: float) -> np.ndarray:  # fmt: skip
+    """Weight (height, width) of the local correction by its own cross-validation ("never
+    hurts", issue 20): the held-out squared residuals of the local model and of the global fit
+    (D = 0), each Gaussian-averaged (``sigma`` px) around every pixel; the weight is 1 where the
+    local model's average is at least ``full_gain`` (a fraction) below the global fit's, falls
+    linearly to 0 where it is no lower, and is 0 where it is higher."""
+    if len(pts) == 0:
+        return np.zeros((height, width), np.float32)
+    step = max(1.0, sigma / 3.0)
+    gc = np.arange(0.0, width + step, step)
+    gr = np.arange(0.0, height + step, step)
+    kc = np.exp(-0.5 * ((gc[:, None] - pts[None, :, 0]) / sigma) ** 2)  # (ngc, n)
+    kr = np.exp(-0.5 * ((gr[:, None] - pts[None, :, 1]) / sigma) ** 2)  # (ngr, n)
+    sm = (kr * err_model**2) @ kc.T  # (ngr, ngc): sum_i k(p - p_i) e_i^2
+    sg = (kr * err_global**2) @ kc.T
+    with np.errstate(invalid="ignore", divide="ignore"):
+        gain = np.where(sg > 1e-12, 1.0 - sm / sg, 0.0)
+    g = np.clip(gain / max(full_gain, 1e-6), 0.0, 1.0).astype(np.float32)
+    mx = (np.arange(width, dtype=np.float32) / step)[None, :].repeat(height, 0)
+    my = (np.arange(height, dtype=np.float32) / step)[:, None].repeat(width, 1)
+    return cv2.remap(g, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 
 # ----------------------------------------------------------------------------- the loop
@@ -518,6 +560,14 @@ def refine(
     c = merged(conf)
     h, w = band.shape
     H = np.asarray(H, np.float64)
+    global_fit: dict[str, Any] | None = None
+    gconf = dict(c.get("global_fit") or {})
+    if gconf.get("enabled", True):
+        from georeg.register.densefit import dense_fit
+
+        # the global homography refitted to dense tie points over the whole footprint first:
+        # the local model then corrects only what no homography can, relative to that fit
+        H, global_fit = dense_fit(band, H, map_image, gconf, c)
     qvalid = (band > 0) if band.dtype == np.uint8 else np.isfinite(band)
     qf = cfog(band.astype(np.float32), qvalid, int(c["orientations"]), float(c["cfog_sigma_px"]))
     win, step, search = int(c["window_px"]), int(c["grid_step_px"]), int(c["search_px"])
@@ -530,7 +580,8 @@ def refine(
         raise ValueError(f"unknown refine model {requested!r} (expected auto or one of {MODELS})")
     model: Model = Model()
     D = np.zeros((h, w, 2))
-    info: dict[str, Any] = {"requested_model": requested, "grid_points": int(len(pts))}
+    info: dict[str, Any] = {"requested_model": requested, "grid_points": int(len(pts)),
+                            "global_fit": global_fit or {"enabled": False}}  # fmt: skip
     history: list[dict[str, Any]] = []
     before = None
     final = None
@@ -592,10 +643,13 @@ def refine(
                     info["line_smoothing"] = float(c["line_smoothing"])
                 # simplest first (MODELS order: per_line, the pushbroom model, then polynomial,
                 # tps, homography): a later model must beat the current choice by auto_min_gain
+                # "never hurts": the gain must also exceed auto_min_gain_px (query px) -- at the
+                # tie points' noise level a lower CV residual is no evidence of a local signal
                 gain = 1 - float(c["auto_min_gain"])
+                gain_px = float(c["auto_min_gain_px"])
                 chosen = "homography"
                 for name in cands:
-                    if cv[name] < gain * cv[chosen]:
+                    if cv[name] < min(gain * cv[chosen], cv[chosen] - gain_px):
                         chosen = name
             else:
                 chosen = requested
@@ -608,9 +662,21 @@ def refine(
                 "full_fraction": float((support >= 0.999).mean()),
                 "none_fraction": float((support <= 0.001).mean()),
             }
+            if c["cv_guard"] and chosen != "homography":
+                em = held_out_errors(chosen, pts[ok], target[ok], wts, w, h, c)
+                eg = held_out_errors("homography", pts[ok], target[ok], wts, w, h, c)
+                guard = cv_guard_weight(pts[ok], em, eg, w, h,
+                                        float(c["cv_guard_sigma_steps"]) * step,
+                                        float(c["cv_guard_full_gain"]))  # fmt: skip
+                support = support * guard
+                info["cv_guard"] = {
+                    "full_fraction": float((guard >= 0.999).mean()),
+                    "none_fraction": float((guard <= 0.001).mean()),
+                }
         D = D * support[..., None]
     assert before is not None and final is not None
     x, y = apply_h(H, cols + D[..., 0], rows + D[..., 1])
+    info["homography"] = H.tolist()  # the global model under the local correction
     bm, bok = before["m"], before["ok"]
     fm, fok = final["m"], final["ok"]
     info.update(
@@ -713,6 +779,10 @@ def run_refine(
             "before_px": (reg.get("evaluation_global") or {}).get("px"),
             "after_px": reg["evaluation"].get("px"),
         }
+        if (info.get("global_fit") or {}).get("accepted"):
+            info["evaluation"]["global_fit_px"] = evaluate(
+                np.array(info["homography"]), truth, map_px
+            ).get("px")
     timings["refine"] = time.perf_counter() - t0
     write_json(out_json, reg)
     log.info("refinement: model %s, %d tie points, residual median %.3f -> %.3f query px",

@@ -1,0 +1,285 @@
+"""Dense least-squares refit of the global homography over the whole footprint (issue 20).
+
+The feature homography rests on its inliers: few or clustered inliers leave it off towards the
+footprint's edges. Here the orthophoto is rendered through the current homography, CFOG channels
+of query and render are correlated in windows on a grid (``georeg.register.refine``'s tie
+points), and the homography is refitted to every accepted tie point by weighted least squares
+with iterative outlier rejection; measure -> fit is iterated.
+
+"Never hurts": the refit replaces the feature homography only when its tie points cover the
+footprint and its spatially blocked cross-validated residual (each block predicted by the
+homography fitted without it) is lower than the feature homography's residual on the same
+points; otherwise the feature homography is kept (``accepted: false`` and why).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+import numpy as np
+
+from georeg.register.geolocation import apply_h
+
+log = logging.getLogger(__name__)
+
+DEFAULTS: dict[str, Any] = {
+    "enabled": True,
+    "iterations": 4,  # measure -> fit passes
+    "min_tie_points": 20,  # fewer accepted tie points: keep the feature homography
+    "min_cover": 0.3,  # tie points' convex hull / valid footprint area, at least
+    "reject_sigma": 3.0,  # outlier bound: this many robust sigmas of the residuals ...
+    "reject_floor_px": 0.75,  # ... but never below this (query px)
+    "cv_folds": 5,  # spatially blocked folds of the guard
+    "min_gain": 0.1,  # the refit's CV residual must be this fraction below the feature fit's
+    "converged_px": 0.05,  # stop when the footprint moves less than this (query px)
+    "model": "auto",  # auto (affine unless the homography's CV wins by min_gain) | homography | affine
+}
+
+
+def merged(conf: dict[str, Any] | None) -> dict[str, Any]:
+    c = dict(DEFAULTS)
+    c.update({k: v for k, v in (conf or {}).items() if v is not None})
+    return c
+
+
+def fit_homography_lsq(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """Weighted normalised-DLT homography src (N, 2) -> dst (N, 2); N >= 4."""
+
+    def norm(p: np.ndarray) -> np.ndarray:
+        c = p.mean(0)
+        s = np.sqrt(2) / max(float(np.mean(np.hypot(*(p - c).T))), 1e-12)
+        return np.array([[s, 0, -s * c[0]], [0, s, -s * c[1]], [0, 0, 1.0]])
+
+    Ts, Td = norm(src), norm(dst)
+    a = src @ Ts[:2, :2].T + Ts[:2, 2]
+    b = dst @ Td[:2, :2].T + Td[:2, 2]
+    n = len(a)
+    o, z = np.ones(n), np.zeros((n, 3))
+    A1 = np.c_[a, o, z, -b[:, :1] * a, -b[:, :1]]
+    A2 = np.c_[z, a, o, -b[:, 1:] * a, -b[:, 1:]]
+    sw = np.sqrt(np.ones(n) if w is None else np.asarray(w, float))
+    A = np.r_[A1 * sw[:, None], A2 * sw[:, None]]
+    h = np.linalg.svd(A, full_matrices=False)[2][-1].reshape(3, 3)
+    H = np.linalg.inv(Td) @ h @ Ts
+    return H / H[2, 2]
+
+
+def fit_affine_lsq(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """Weighted least-squares affine map src (N, 2) -> dst (N, 2) as a 3 x 3 matrix; N >= 3."""
+    c = src.mean(0)
+    A = np.c_[src - c, np.ones(len(src))]
+    sw = np.sqrt(np.ones(len(src)) if w is None else np.asarray(w, float))[:, None]
+    coef = np.linalg.lstsq(A * sw, dst * sw, rcond=None)[0]
+    H = np.eye(3)
+    H[:2, :2] = coef[:2].T
+    H[:2, 2] = coef[2] - coef[:2].T @ c
+    return H
+
+
+def _fit(src: np.ndarray, dst: np.ndarray, w: np.ndarray, model: str) -> np.ndarray:
+    if model == "affine":
+        return fit_affine_lsq(src, dst, w)
+    if model == "homography":
+        return fit_homography_lsq(src, dst, w)
+    raise ValueError(f"unknown global_fit model {model!r} (expected homography, affine or auto)")
+
+
+def _px_scale(H: np.ndarray, width: int, height: int) -> float:
+    """Map units per query pixel at the footprint centre."""
+    c = np.array([width / 2, width / 2 + 1, width / 2])
+    r = np.array([height / 2, height / 2, height / 2 + 1])
+    x, y = apply_h(H, c, r)
+    return float(np.sqrt(abs((x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0]))))
+
+
+def residuals_px(H: np.ndarray, src: np.ndarray, dst: np.ndarray, px: float) -> np.ndarray:
+    """|H(src) - dst| in query pixels (``px`` map units per query pixel)."""
+    x, y = apply_h(H, src[:, 0], src[:, 1])
+    r = np.hypot(x - dst[:, 0], y - dst[:, 1]) / px
+    return np.where(np.isfinite(r), r, np.inf)
+
+
+def robust_fit(src: np.ndarray, dst: np.ndarray, w: np.ndarray, px: float,
+               c: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Weighted homography with iterative rejection (robust sigma, floor); (H, inlier mask)."""
+    keep = np.ones(len(src), bool)
+    model = str(c["model"])
+    H = _fit(src, dst, w, model)
+    for _ in range(5):
+        r = residuals_px(H, src, dst, px)
+        sig = 1.4826 * float(np.median(r[keep]))
+        new = r <= max(float(c["reject_sigma"]) * sig, float(c["reject_floor_px"]))
+        if new.sum() < 4 or np.array_equal(new, keep):
+            break
+        keep = new
+        H = _fit(src[keep], dst[keep], w[keep], model)
+    return H, keep
+
+
+def blocked_cv(src: np.ndarray, dst: np.ndarray, w: np.ndarray, H0: np.ndarray, px: float,
+               block: float, c: dict[str, Any], seed: int = 0,
+               models: tuple[str, ...] = ()) -> dict[str, float]:  # fmt: skip
+    """Held-out residual RMS (query px) of the refit (each of ``models``, default ``c["model"]``)
+    and of ``H0`` (key ``feature``) on the same points.
+
+    Tie points are grouped in square blocks of ``block`` px that go to ``cv_folds`` folds at
+    random; each fold is predicted by the model fitted (robustly) without it. Points that the
+    first model's fit of the other folds rejects as outliers are left out of every figure."""
+    models = models or (str(c["model"]),)
+    k = max(2, int(c["cv_folds"]))
+    bid = (src[:, 0] // block).astype(int) * 100003 + (src[:, 1] // block).astype(int)
+    ub, inv = np.unique(bid, return_inverse=True)
+    fold = (np.random.default_rng(seed).permutation(len(ub)) % k)[inv]
+    errs: dict[str, list[np.ndarray]] = {m: [] for m in (*models, "feature")}
+    for f in range(k):
+        test = fold == f
+        if test.sum() == 0 or (~test).sum() < 8:
+            continue
+        r = {}
+        for m in models:
+            H, _ = robust_fit(src[~test], dst[~test], w[~test], px, {**c, "model": m})
+            r[m] = residuals_px(H, src[test], dst[test], px)
+        r["feature"] = residuals_px(H0, src[test], dst[test], px)
+        r1 = r[models[0]]
+        bound = max(float(c["reject_sigma"]) * 1.4826 * float(np.median(r1)),
+                    float(c["reject_floor_px"]))  # fmt: skip
+        ok = r1 <= bound
+        for m, v in r.items():
+            errs[m].append(v[ok])
+    out = {}
+    for m, v in errs.items():
+        a = np.concatenate(v) if v else np.zeros(0)
+        out[m] = float(np.sqrt(np.mean(a**2))) if a.size else float("inf")
+    out["refit"] = out[models[0]]
+    return out
+
+
+def cover_fraction(pts: np.ndarray, valid: np.ndarray) -> float:
+    """Convex hull area of ``pts`` over the valid query area."""
+    import cv2
+
+    if len(pts) < 3 or not valid.any():
+        return 0.0
+    hull = cv2.convexHull(pts.astype(np.float32))
+    return float(cv2.contourArea(hull)) / float(valid.sum())
+
+
+def dense_fit(
+    band: np.ndarray,
+    H: np.ndarray,
+    map_image: Any,
+    conf: dict[str, Any] | None = None,
+    refine_conf: dict[str, Any] | None = None,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Refit the global homography ``H`` (query px -> map x, y) to CFOG tie points over the
+    whole footprint. ``conf``: this module's settings (``refine.global_fit``); ``refine_conf``:
+    the tie-point settings (grid, window, search, scores: ``georeg.register.refine``).
+
+    Returns the homography to use (the refit, or ``H`` when the guard keeps it) and a report."""
+    from georeg.register.refine import (
+        cfog,
+        consistent,
+        grid_points,
+        measure_shifts,
+        window_centroid,
+    )
+    from georeg.register.refine import merged as refine_merged
+
+    t0 = time.perf_counter()
+    c = merged(conf)
+    requested = str(c["model"])
+    if requested not in ("homography", "affine", "auto"):
+        raise ValueError(f"unknown global_fit model {requested!r}")
+    if requested == "auto":  # iterate with the affine map, then choose by blocked CV
+        c["model"] = "affine"
+    rc = refine_merged(refine_conf)
+    H0 = np.asarray(H, np.float64)
+    h, w = band.shape
+    qvalid = (band > 0) if band.dtype == np.uint8 else np.isfinite(band)
+    qf = cfog(band.astype(np.float32), qvalid, int(rc["orientations"]), float(rc["cfog_sigma_px"]))
+    win, step, search = int(rc["window_px"]), int(rc["grid_step_px"]), int(rc["search_px"])
+    centres = grid_points(w, h, step, win)
+    pts = window_centroid(centres, w, h, win)
+    cols = np.arange(w, dtype=np.float64)[None, :]
+    rows = np.arange(h, dtype=np.float64)[:, None]
+    px = _px_scale(H0, w, h)
+    corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], float)
+    info: dict[str, Any] = {"enabled": True, "accepted": False, "grid_points": int(len(pts))}
+    Hc = H0.copy()
+    first: dict[str, Any] | None = None
+    last: tuple | None = None
+    history = []
+    for it in range(max(1, int(c["iterations"]))):
+        x, y = apply_h(Hc, cols, rows)
+        rendered = map_image.render(x, y)
+        rvalid = np.isfinite(rendered)
+        rf = cfog(np.nan_to_num(rendered), rvalid, int(rc["orientations"]),
+                  float(rc["cfog_sigma_px"]))  # fmt: skip
+        m = measure_shifts(qf, rf, qvalid, rvalid, centres, win, search,
+                           float(rc["min_valid_fraction"]))  # fmt: skip
+        ok = m["valid"] & ~m["border"] & (m["score"] >= float(rc["min_score"]))
+        if ok.sum() >= 3:
+            ok[ok] &= consistent(pts[ok], m["shift"][ok], 2.5 * step, float(rc["consistency_px"]))
+        src = pts[ok]
+        dx, dy = apply_h(Hc, src[:, 0] + m["shift"][ok, 0], src[:, 1] + m["shift"][ok, 1])
+        dst = np.c_[dx, dy]
+        wts = np.clip(m["score"][ok], 0.05, 1.0)
+        if first is None:
+            first = {"src": src, "dst": dst, "w": wts}
+        entry: dict[str, Any] = {"iteration": it, "tie_points": int(ok.sum())}
+        history.append(entry)
+        if ok.sum() < max(8, int(c["min_tie_points"])):
+            info["reason"] = f"{int(ok.sum())} tie points < min_tie_points {c['min_tie_points']}"
+            break
+        Hn, keep = robust_fit(src, dst, wts, px, c)
+        entry["inliers"] = int(keep.sum())
+        entry["residual_px"] = float(np.median(residuals_px(Hn, src[keep], dst[keep], px)))
+        move = residuals_px(Hn, corners, np.c_[apply_h(Hc, corners[:, 0], corners[:, 1])], px)
+        entry["moved_px"] = float(move.max())
+        last = (src, dst, wts, keep)
+        Hc = Hn
+        if move.max() < float(c["converged_px"]):
+            break
+    info["iterations"] = history
+    if last is None:
+        info["seconds"] = time.perf_counter() - t0
+        return H0, info
+    src, dst, wts, keep = last
+    cover = cover_fraction(src[keep], qvalid)
+    seed = int(rc.get("seed", 0))
+    if requested == "auto":
+        cv = blocked_cv(src, dst, wts, H0, px, 2.0 * win, c, seed, ("affine", "homography"))
+        if cv["homography"] < (1 - float(c["min_gain"])) * cv["affine"]:
+            c["model"] = "homography"
+            Hc, keep = robust_fit(src, dst, wts, px, c)
+            cv["refit"] = cv["homography"]
+    else:
+        cv = blocked_cv(src, dst, wts, H0, px, 2.0 * win, c, seed)
+    info["model"] = str(c["model"])
+    moved = residuals_px(Hc, corners, np.c_[apply_h(H0, corners[:, 0], corners[:, 1])], px)
+    info.update(
+        tie_points=int(len(src)),
+        inliers=int(keep.sum()),
+        cover=cover,
+        cv_rms_px=cv,
+        moved_corners_px=[round(float(v), 3) for v in moved],
+    )
+    if cover < float(c["min_cover"]):
+        info["reason"] = (
+            f"tie points cover {cover:.2f} of the footprint < min_cover {c['min_cover']}"
+        )
+    elif not cv["refit"] < (1 - float(c["min_gain"])) * cv["feature"]:
+        info["reason"] = (
+            f"cross-validated residual {cv['refit']:.3f} px not below the feature homography's "
+            f"{cv['feature']:.3f} px"
+        )
+    else:
+        info["accepted"] = True
+    info["homography"] = Hc.tolist()
+    info["seconds"] = time.perf_counter() - t0
+    log.info("global dense fit: %d tie points, cover %.2f, CV %.3f vs %.3f px -> %s",
+             len(src), cover, cv["refit"], cv["feature"],
+             "refit" if info["accepted"] else info.get("reason"))  # fmt: skip
+    return (Hc if info["accepted"] else H0), info
