@@ -284,8 +284,9 @@ METHODS: dict[str, dict[str, Any]] = {
     "wf_default": {"pipeline": {}, "bands": "auto"},
     # small queries (georeg.register.small, register.small): off / on whatever the config says
     "wf_nosmall": {"pipeline": {"small": {"enabled": False}}, "bands": "auto"},
-    "wf_small": {"pipeline": {"small": {"enabled": True}}, "bands": "auto"},
-    "wf_small_w8": {"pipeline": {"small": {"enabled": True, "max_windows": 8}}, "bands": "auto"},
+    "wf_small": {"pipeline": {"small": {"enabled": True}}, "bands": "auto"},  # dense Hough windows
+    "wf_small_searched": {"pipeline": {"small": {"enabled": True, "windows": "searched"}},
+                          "bands": "auto"},  # fmt: skip
     # the same with the ranking before the Hough vote on plain arrays (register.index.rank:
     # tiles, which without an index means 1-NN votes of the query descriptors on footprint cells)
     "wf_default_cellvote": {"pipeline": {"index": {"rank": "tiles"}}, "bands": "auto"},

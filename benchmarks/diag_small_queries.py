@@ -24,7 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_crossspectral as bc  # noqa: E402
 
-from georeg.index.features import detect_and_describe, merged_conf, resample  # noqa: E402
+from georeg.index.features import detect_and_describe, merged_conf  # noqa: E402
 from georeg.register import matching  # noqa: E402
 from georeg.register.dense import dense_search  # noqa: E402
 from georeg.register.search import MapSource, query_features, verify  # noqa: E402

@@ -14,7 +14,6 @@ from typing import Any
 import numpy as np
 
 from georeg.register import matching
-from georeg.register.small import small_fallback
 from georeg.register.search import (
     MapSource,
     QueryFeatures,
@@ -25,6 +24,7 @@ from georeg.register.search import (
     search_part,
     verify,
 )
+from georeg.register.small import small_fallback
 
 log = logging.getLogger(__name__)
 
