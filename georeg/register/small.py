@@ -148,13 +148,16 @@ def small_register(
     seed: int = 0,
     n_windows: int = 1,
     qf: QueryFeatures | None = None,
+    region: tuple[float, float, float, float] | None = None,
 ) -> dict[str, Any]:
     """Register a small query in one map window: CFOG peak, then the guided re-match with dense
     features at radii ``radii_px`` (feature px; a later radius only refines an accepted fit).
 
     ``q_u8``: query band(s) (0 = nodata; several pooled bands: all give features, the first
     the correlation); ``win``: window (uint8, 0 = nodata); ``q_gsd``: query GSD in map units.
-    ``qf``: the query's dense features when already computed. Returns a record like a search
+    ``qf``: the query's dense features when already computed. ``region`` (map x0, y0, x1, y1):
+    only places whose query centre lies in it are searched and counted (the window should hold
+    the region grown by half the footprint diagonal); None = the whole window. Returns a record like a search
     part's (``accepted``, ``homography``, ``inliers``, ``log10_nfa``, ...).
     """
     from georeg.register.dense import dense_search
@@ -164,7 +167,16 @@ def small_register(
     rec: dict[str, Any] = {"method": "small", "accepted": False, "homography": None, "inliers": 0}
     win_px = float(np.sqrt(abs(np.linalg.det(win_to_map[:2, :2]))))
     q0 = q_u8 if q_u8.ndim == 2 else q_u8[0]
-    r = dense_search(q0, q_gsd / win_px, win, float(sc["step_deg"]), int(sc["max_side"]))
+    box = None
+    places_px = float(win.shape[0] * win.shape[1])
+    if region is not None:
+        inv = np.linalg.inv(win_to_map)
+        cr = matching.apply_h(inv, np.array([[region[0], region[1]], [region[2], region[3]]]))
+        box = (float(cr[:, 0].min()), float(cr[:, 1].min()), float(cr[:, 0].max()),
+               float(cr[:, 1].max()))  # fmt: skip
+        places_px = max(1.0, (box[2] - box[0]) * (box[3] - box[1]))
+    r = dense_search(q0, q_gsd / win_px, win, float(sc["step_deg"]), int(sc["max_side"]),
+                     centre_box=box)  # fmt: skip
     if r is None:
         rec.update(reason="no overlap", seconds=time.perf_counter() - t0)
         return rec
@@ -182,7 +194,7 @@ def small_register(
     mxy, mdesc = np.asarray(src.xy, np.float64), np.asarray(src.desc, np.float32)
     knn = matching.knn2(mdesc)
     q_xy, q_desc, _ = crossspectral.add_polarity(qf.xy, qf.desc, qf.response)
-    win_area = float(win.shape[0] * win.shape[1]) * (win_px / g) ** 2
+    win_area = places_px * (win_px / g) ** 2  # where the query centre may be, feature px
     n_rot = int(round(360.0 / float(sc["step_deg"])))
     best = None
     for k, radius_px in enumerate(float(v) for v in sc["radii_px"]):
@@ -265,14 +277,15 @@ def small_fallback(
     fconf = dense_features_conf(source.features_conf, sc)
     qf = query_features(u8, (0, h), [gsd_m / source.gsd_m], fconf)
     windows = small_windows(qf, source, parts, conf, gsd_m)
+    grow = 0.5 * math.hypot(w, h) * float(gsd_m)  # a centre in the region, the footprint around
     tried = []
     for k, b in enumerate(windows):
-        got = read_window(b)
+        got = read_window((b[0] - grow, b[1] - grow, b[2] + grow, b[3] + grow))
         if got is None:
             continue
         gray, A = got
         rec = small_register(u8, gsd_m, window_u8(gray), A, source.gsd_m, conf,
-                             source.features_conf, seed + k, len(windows), qf)  # fmt: skip
+                             source.features_conf, seed + k, len(windows), qf, b)  # fmt: skip
         rec["bounds"] = [float(v) for v in b]
         tried.append({k2: rec.get(k2) for k2 in ("bounds", "accepted", "inliers", "matches",
                       "log10_nfa", "angle_deg", "dense_score", "reason", "seconds")})  # fmt: skip
