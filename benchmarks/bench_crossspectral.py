@@ -285,6 +285,8 @@ METHODS: dict[str, dict[str, Any]] = {
     # small queries (georeg.register.small, register.small): off / on whatever the config says
     "wf_nosmall": {"pipeline": {"small": {"enabled": False}}, "bands": "auto"},
     "wf_small": {"pipeline": {"small": {"enabled": True}}, "bands": "auto"},  # dense Hough windows
+    "wf_small_160": {"pipeline": {"small": {"enabled": True, "max_side_px": 160}},
+                     "bands": "auto"},  # fmt: skip
     "wf_small_searched": {"pipeline": {"small": {"enabled": True, "windows": "searched"}},
                           "bands": "auto"},  # fmt: skip
     # the same with the ranking before the Hough vote on plain arrays (register.index.rank:
