@@ -62,7 +62,7 @@ def test_binomial_nfa_rejects_uniform_residuals_and_accepts_a_cluster():
 
 
 def test_small_conf_defaults_and_override():
-    assert small_conf({})["max_side_px"] == 100
+    assert small_conf({})["max_side_px"] == 160
     assert small_conf({"small": {"enabled": True}})["enabled"] is True
 
 

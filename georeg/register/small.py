@@ -31,8 +31,8 @@ from georeg.register import acceptance, crossspectral, matching
 from georeg.register.search import MapSource, QueryFeatures, query_features
 
 SMALL_DEFAULTS: dict[str, Any] = {
-    "enabled": False,
-    "max_side_px": 100,
+    "enabled": True,
+    "max_side_px": 160,
     "max_windows": 3,
     "windows": "hough",
     "step_deg": 10.0,
