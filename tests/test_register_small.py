@@ -121,3 +121,23 @@ def test_small_sentinel2_query_registers_at_its_true_place_and_not_on_another_ci
     assert out["on"][0]["split"]["small"]["ran"]
     assert out["neg"][0]["status"] == "not_found"
     assert out["neg"][0]["split"]["small"]["ran"]
+
+
+def test_dense_search_centre_box_restricts_the_query_centre():
+    """``dense_search(centre_box=...)``: the peak's query centre stays inside the box; a box
+    around the true place finds it to a pixel."""
+    import cv2
+
+    from georeg.register.dense import dense_search
+
+    rng = np.random.default_rng(0)
+    m = cv2.GaussianBlur(rng.random((200, 200)).astype(np.float32), (0, 0), 2.0)
+    m = (1 + 254 * (m - m.min()) / (m.max() - m.min())).astype(np.uint8)
+    q = m[60:120, 110:170].copy()  # true centre (139.5, 89.5) in window px
+    centre = np.array([[(q.shape[1] - 1) / 2, (q.shape[0] - 1) / 2]])
+    r = dense_search(q, 1.0, m, 10.0, 96, centre_box=(120.0, 70.0, 160.0, 110.0))
+    c = matching.apply_h(r.S, centre)[0]
+    assert np.hypot(c[0] - 139.5, c[1] - 89.5) < 1.5 and r.angle_deg == 0.0
+    r2 = dense_search(q, 1.0, m, 10.0, 96, centre_box=(30.0, 30.0, 80.0, 80.0))
+    c2 = matching.apply_h(r2.S, centre)[0]
+    assert 29.0 <= c2[0] <= 81.0 and 29.0 <= c2[1] <= 81.0
