@@ -3,6 +3,12 @@
     . /work/main/.venv/bin/activate
     nice -n 5 python benchmarks/bench_crossspectral.py -v       # the protocol's default methods
     nice -n 5 python benchmarks/bench_crossspectral.py --methods wf_adaptive --half checking
+    nice -n 5 python benchmarks/bench_crossspectral.py --set small --methods wf_nosmall,wf_small
+
+``--set small``: the small-query development subset (45-100 px crops of the TUNING scenes only,
+own seed, with their unrelated pairs; docs/BENCHMARKS.md "Small queries"). The ``wf_*`` methods
+pass the workflow's orthophoto window reader on the plain map array (``plain_window_reader``), so
+the small-query fallback (``register.small``, on by default) runs as in the workflow.
 
 Protocol (docs/BENCHMARKS.md "Cross-spectral matching"): the scenes of ../shared/data are split
 by city into a tuning half (nanjing, abudhabi, saclay) and a checking half (taizhou, hongkong,
