@@ -3,6 +3,12 @@
     . /work/main/.venv/bin/activate
     nice -n 5 python benchmarks/bench_crossspectral.py -v       # the protocol's default methods
     nice -n 5 python benchmarks/bench_crossspectral.py --methods wf_adaptive --half checking
+    nice -n 5 python benchmarks/bench_crossspectral.py --set small --methods wf_nosmall,wf_small
+
+``--set small``: the small-query development subset (45-100 px crops of the TUNING scenes only,
+own seed, with their unrelated pairs; docs/BENCHMARKS.md "Small queries"). The ``wf_*`` methods
+pass the workflow's orthophoto window reader on the plain map array (``plain_window_reader``), so
+the small-query fallback (``register.small``, on by default) runs as in the workflow.
 
 Protocol (docs/BENCHMARKS.md "Cross-spectral matching"): the scenes of ../shared/data are split
 by city into a tuning half (nanjing, abudhabi, saclay) and a checking half (taizhou, hongkong,
@@ -176,15 +182,18 @@ class Query:
     truth_map: np.ndarray | None  # (k,2) map px of those points
 
 
-def make_query(sc: Scene, rng: np.random.Generator, i: int, frac: float = 0.5) -> Query:
+def make_query(
+    sc: Scene, rng: np.random.Generator, i: int, frac: float = 0.5, side_px: int | None = None
+) -> Query:
     """Rotate, rescale and crop a SWIR band of ``sc`` (seeded); truth on a grid of query pixels.
 
-    Side: ``frac`` of the scene's smaller side (``sc.query_px`` query px when set); the centre is
-    drawn again until at least half of the crop is valid."""
+    Side: ``frac`` of the scene's smaller side (``side_px`` or ``sc.query_px`` query px when
+    set); the centre is drawn again until at least half of the crop is valid."""
     first_band = next(iter(sc.swir.values()))
     h, w = first_band.shape
     s = float(rng.uniform(*sc.scale_range))
-    side = sc.query_px / s if sc.query_px else frac * min(h, w)
+    px = side_px or sc.query_px
+    side = px / s if px else frac * min(h, w)
     theta = float(rng.uniform(0, 360))
     half = side / math.sqrt(2)
     ok = np.isfinite(first_band) & (first_band > 0)
@@ -280,6 +289,13 @@ METHODS: dict[str, dict[str, Any]] = {
     # the workflow's query stage exactly: `band: auto` (nearest 1200 nm: the ~1.6 um band here)
     # and `bands: auto` (+ the band nearest 2200 nm) -- the workflow default; and `bands: one`
     "wf_default": {"pipeline": {}, "bands": "auto"},
+    # small queries (georeg.register.small, register.small): off / on whatever the config says
+    "wf_nosmall": {"pipeline": {"small": {"enabled": False}}, "bands": "auto"},
+    "wf_small": {"pipeline": {"small": {"enabled": True}}, "bands": "auto"},  # dense Hough windows
+    "wf_small_160": {"pipeline": {"small": {"enabled": True, "max_side_px": 160}},
+                     "bands": "auto"},  # fmt: skip
+    "wf_small_searched": {"pipeline": {"small": {"enabled": True, "windows": "searched"}},
+                          "bands": "auto"},  # fmt: skip
     # the same with the ranking before the Hough vote on plain arrays (register.index.rank:
     # tiles, which without an index means 1-NN votes of the query descriptors on footprint cells)
     # the workflow default followed by the workflow's refinement stage (rule refine_registration:
@@ -446,6 +462,25 @@ def run_refine(q: Query, sc_map: Scene, H: np.ndarray, spec: dict[str, Any]) -> 
             "global_fit": gf.get("accepted"), "global_fit_reason": gf.get("reason")}  # fmt: skip
 
 
+def plain_window_reader(sc: Scene) -> Any:
+    """The workflow's orthophoto window reader (fuse.ortho_window_reader) on a plain map array:
+    bounds (map x, y; x = col g, y = -row g) -> (float window, NaN = nodata; 3 x 3 window pixel
+    centre -> map x, y) or None."""
+    g = sc.map_gsd
+    h, w = sc.map_gray.shape
+
+    def read(b: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray] | None:
+        c0, c1 = max(0, int(math.floor(b[0] / g))), min(w, int(math.ceil(b[2] / g)) + 1)
+        r0, r1 = max(0, int(math.floor(-b[3] / g))), min(h, int(math.ceil(-b[1] / g)) + 1)
+        if c1 - c0 < 8 or r1 - r0 < 8:
+            return None
+        win = sc.map_gray[r0:r1, c0:c1].astype(np.float32)
+        win[win == 0] = np.nan
+        return win, np.array([[g, 0, c0 * g], [0, -g, -r0 * g], [0, 0, 1.0]])
+
+    return read
+
+
 def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict[str, Any]:
     """The workflow's registration stages (georeg.register.fuse.register_query) on plain arrays;
     with ``spec["refine"]`` also the refinement stage."""
@@ -458,7 +493,7 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
     mxy, mdesc, mang, msize = map_features(sc_map, fgsd, merged_conf(FEATURES))
     src = MapSource(mxy, mdesc, fgsd, angle=mang, scale=msize * fgsd)
     u8 = query_stack(q, spec.get("bands", 1))
-    res = register_query(u8, src, conf, q.gsd, [q.gsd / fgsd], seed)
+    res = register_query(u8, src, conf, q.gsd, [q.gsd / fgsd], seed, plain_window_reader(sc_map))
     split = res.get("split") or {}
     extra: dict[str, Any] = {}
     if spec.get("refine") is not None and res["status"] == "registered":
@@ -644,6 +679,31 @@ def build_set(per_scene: int, seed: int, small: int = 1) -> tuple[list[Scene], l
     return scenes, qs + neg
 
 
+def build_small_set(per_scene: int, seed: int, sides: tuple[int, int] = (45, 100)
+                    ) -> tuple[list[Scene], list[Query]]:
+    """The small-query development subset: ``per_scene`` crops of ``sides`` query px a side
+    (same rotations, rescales and random band as the protocol) of the TUNING scenes only, drawn
+    with their own seed (``seed`` + 500), and each against the map of another tuning city."""
+    scenes = [sc for sc in all_scenes(enmap=False) if half_of(sc.city) == "tuning"]
+    rng = np.random.default_rng(seed + 500)
+    qs = []
+    for sc in scenes:
+        for i in range(per_scene):
+            n = int(rng.integers(sides[0], sides[1] + 1))
+            q = make_query(sc, rng, 100 + i, side_px=n)
+            qs.append(Query("small_" + q.name, *[getattr(q, f) for f in
+                                                 ("scene", "map_scene", "bands", "gsd", "truth",
+                                                  "truth_map")]))  # fmt: skip
+    neg = []
+    for k, sc in enumerate(scenes):
+        others = [o for o in scenes[k + 1 :] + scenes[:k] if o.city != sc.city]
+        other = others[1 % len(others)]
+        for q in (x for x in qs if x.scene == sc.name):
+            neg.append(Query(q.name + "_vs_" + other.name, sc.name, other.name, q.bands, q.gsd,
+                             None, None))  # fmt: skip
+    return scenes, qs + neg
+
+
 def summarise(r: list[dict[str, Any]]) -> dict[str, Any]:
     """Counts and error figures of one method's records (one half or all)."""
     pos = [x for x in r if x["positive"]]
@@ -672,6 +732,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--per-scene", type=int, default=3, help="crops of half the scene side")
     ap.add_argument("--small", type=int, default=1, help="smaller crops (0.3-0.45 of the side)")
     ap.add_argument("--half", choices=("tuning", "checking", "both"), default="both")
+    ap.add_argument("--set", choices=("protocol", "small"), default="protocol",
+                    help="small: the small-query development subset of the tuning cities "
+                    "(45-100 px a side, own seed; its rows are the half 'small')")  # fmt: skip
+    ap.add_argument("--small-per-scene", type=int, default=6, help="--set small: crops per scene")
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--out", default=str(ROOT / "results" / "benchmark" / "crossspectral.json"))
     ap.add_argument("-v", action="store_true", help="one line per query and method")
@@ -680,14 +744,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"no development data at {DATES}", file=sys.stderr)
         return 1
     cv2.setNumThreads(1)
-    scenes, queries = build_set(a.per_scene, a.seed, a.small)
+    if a.set == "small":
+        scenes, queries = build_small_set(a.small_per_scene, a.seed)
+    else:
+        scenes, queries = build_set(a.per_scene, a.seed, a.small)
     by = {s.name: s for s in scenes}
-    if a.half != "both":
+    if a.half != "both" and a.set == "protocol":
         queries = [q for q in queries if half_of(by[q.scene].city) == a.half]
     methods = a.methods.split(",")
     rows: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
     for qi, q in enumerate(queries):
-        half = half_of(by[q.scene].city)
+        half = "small" if a.set == "small" else half_of(by[q.scene].city)
         for name in methods:
             res = run_method(q, by[q.map_scene], METHODS[name], a.seed + qi)
             j = judge(q, by[q.map_scene], res)
@@ -716,7 +783,7 @@ def main(argv: list[str] | None = None) -> int:
     summary: dict[str, Any] = {}
     for name in methods:
         summary[name] = {}
-        for half in ("tuning", "checking"):
+        for half in ("small", "tuning", "checking"):
             sm = summarise([x for x in rows[name] if x["half"] == half])
             summary[name][half] = sm
             if not sm["positives"]:

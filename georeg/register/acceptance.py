@@ -57,6 +57,43 @@ def log10_nfa(
     return float(lnfa[i]), int(k[i]), float(e[i])
 
 
+def log10_nfa_binomial(
+    residual_px: np.ndarray,
+    area_px: float,
+    n_tests_extra: float = 1.0,
+    sample: int = 2,
+    min_residual_px: float = 0.5,
+) -> tuple[float, int, float]:
+    """Best (log10 NFA, k, e_k) over k of the binomial-tail a-contrario bound.
+
+    NFA(k) = T * (n - s) * C(n, s) * P[Binomial(n - s, p_k) >= k - s],  p_k = pi e_k^2 / area,
+    with s = ``sample`` the minimal sample of the model (2 for a similarity), e_k the k-th
+    smallest residual and ``area`` where a chance match could land (map pixels). The same null
+    as ``log10_nfa`` (matches uniform in the area); the binomial tail is the exact probability
+    that k - s of the other n - s matches fall within e_k, where ORSA's C(n - s, k - s) p^(k - s)
+    bounds it (loose when p is not small, e.g. a guided re-match whose area is a small disc).
+    """
+    from scipy.stats import binom
+
+    r = np.sort(np.asarray(residual_px, np.float64))
+    r = r[np.isfinite(r)]
+    n = len(r)
+    if n < sample + 2 or area_px <= 0:
+        return float("inf"), 0, float("nan")
+    k = np.arange(sample + 2, n + 1)
+    e = np.maximum(r[k - 1], min_residual_px)
+    p = np.minimum(1.0, math.pi * e**2 / float(area_px))
+    tail = binom.logsf(k - sample - 1, n - sample, p) / LN10
+    lnfa = (
+        math.log10(max(n_tests_extra, 1.0))
+        + math.log10(n - sample)
+        + float(log10_binom(n, sample))
+        + tail
+    )
+    i = int(np.argmin(lnfa))
+    return float(lnfa[i]), int(k[i]), float(e[i])
+
+
 def jacobian(H: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """(n,2,2) Jacobians d(x,y)/d(col,row) of the homography at query points ``uv`` (n,2)."""
     uv = np.atleast_2d(np.asarray(uv, np.float64))

@@ -66,9 +66,12 @@ def dense_search(
     max_side: int = 96,
     orientations: int = 9,
     min_overlap: float = 0.9,
+    centre_box: tuple[float, float, float, float] | None = None,
 ) -> DenseResult | None:
     """Find the query (uint8, 0 = nodata; ``factor`` = query GSD / map GSD) in the map window
-    ``m_u8`` (uint8, 0 = nodata) over rotations of ``step_deg``. None when nothing overlaps."""
+    ``m_u8`` (uint8, 0 = nodata) over rotations of ``step_deg``. None when nothing overlaps.
+    ``centre_box`` = (col0, row0, col1, row1) in window px: only offsets that put the query's
+    centre inside it are searched."""
     qv0 = q_u8 > 0
     q, qv = _shrink(q_u8, qv0, factor)
     s = min(1.0, max_side / max(q.shape))
@@ -93,6 +96,13 @@ def dense_search(
         return None
     angles = np.arange(0.0, 360.0, step_deg)
     scores = np.full((len(angles), oy, ox), -np.inf, np.float32)
+    allowed = np.ones((oy, ox), bool)
+    if centre_box is not None:
+        # offset (dy, dx) puts the query centre at window px ((d + (D - 1) / 2 - pd) + 0.5) / s - 0.5
+        cc = (np.arange(ox) + (D - 1) / 2 - pd + 0.5) / s - 0.5
+        cr = (np.arange(oy) + (D - 1) / 2 - pd + 0.5) / s - 0.5
+        c0, r0, c1, r1 = centre_box
+        allowed = ((cr >= r0) & (cr <= r1))[:, None] & ((cc >= c0) & (cc <= c1))[None, :]
     mats = []
     for k, a in enumerate(angles):
         A = cv2.getRotationMatrix2D(((w - 1) / 2, (h - 1) / 2), float(a), 1.0)
@@ -107,7 +117,7 @@ def dense_search(
         FQ = np.fft.rfft2(C, s=(P, Q))
         corr = np.fft.irfft2((FM * np.conj(FQ)).sum(0), s=(P, Q))[:oy, :ox]
         cnt = np.fft.irfft2(FMv * np.conj(np.fft.rfft2(vr.astype(np.float32), s=(P, Q))), s=(P, Q))
-        ok = cnt[:oy, :ox] >= min_overlap * n
+        ok = (cnt[:oy, :ox] >= min_overlap * n) & allowed
         scores[k] = np.where(ok, corr / max(n, 1.0), -np.inf)
         mats.append(np.vstack([A, [0, 0, 1]]))
     fin = np.isfinite(scores)

@@ -24,6 +24,7 @@ from georeg.register.search import (
     search_part,
     verify,
 )
+from georeg.register.small import small_fallback
 
 log = logging.getLogger(__name__)
 
@@ -287,14 +288,16 @@ def register_query(
     read_window: Any = None,
 ) -> dict[str, Any]:
     """The workflow's search_part jobs and fuse_parts in one process: split plan, every part,
-    the whole-query fallback, the dense fallback (when ``read_window`` is given, see
-    ``dense_fallback``), fusion. Returns the fused result with ``split`` and ``parts``."""
+    the whole-query fallback, the small-query and dense fallbacks (when ``read_window`` is
+    given, see ``georeg.register.small.small_fallback`` and ``dense_fallback``), fusion. Returns the fused result with ``split`` and ``parts``."""
     h = u8.shape[-2]
     full = query_features(u8, (0, h), factors, source.features_conf)
     n = int(conf.get("parts", 2))
     parts = [search_one_part(u8, k, source, conf, gsd_m, factors, seed, full) for k in range(n)]
     parts, split = whole_query_fallback(full, source, parts, conf, gsd_m, seed)
     if read_window is not None:
+        parts, split["small"] = small_fallback(u8, full, source, parts, conf, gsd_m, read_window,
+                                               seed)  # fmt: skip
         parts, split["dense"] = dense_fallback(u8, full, source, parts, conf, gsd_m, read_window,
                                                seed)  # fmt: skip
     fused = fuse(full, source, parts, conf, gsd_m, seed)
@@ -348,6 +351,10 @@ def run_fuse_parts(
         timings["whole_query_search"] = time.perf_counter() - t1
     t1 = time.perf_counter()
     reader = None if not ortho else ortho_window_reader(ortho)
+    parts, split["small"] = small_fallback(u8, full, source, parts, reg_conf, gsd, reader, seed)
+    if split["small"].get("ran"):
+        timings["small_search"] = time.perf_counter() - t1
+    t1 = time.perf_counter()
     parts, split["dense"] = dense_fallback(u8, full, source, parts, reg_conf, gsd, reader, seed)
     if split["dense"].get("ran"):
         timings["dense_search"] = time.perf_counter() - t1
@@ -389,6 +396,7 @@ def run_fuse_parts(
                 "rows": p["rows"],
                 "whole_query": p["rows"] == [0, h],
                 "dense": bool(p.get("dense")),
+                "small": bool(p.get("small")),
                 "skipped": bool(p.get("skipped")),
                 "accepted": p["accepted"],
                 "candidates_tried": p["candidates_tried"],

@@ -1,0 +1,296 @@
+"""Very small queries (< ~100 px a side): dense correlation in the candidate regions, then a
+feature re-match with features dense on both sides, decided by the feature NFA.
+
+A 48-100 px SWIR query keeps a few dozen features at the map index's density
+(``features.max_features_per_mpx``), too few to survive the cross-spectral ratio test; in its
+true candidate region the verification finds at most 4 inliers. Two things are cheap once the
+search is restricted to a candidate region (docs/BENCHMARKS.md "Small queries"):
+
+* the CFOG channels of query and orthophoto window correlated by FFT over rotations
+  (``georeg.register.dense.dense_search``) put the query within 1-3 map px of its true place in
+  most true regions -- a similarity hypothesis, not a decision;
+* the orthophoto window is read and its features re-detected without the per-Mpx cap and with a
+  lower contrast threshold (same for the query), so the guided re-match around that similarity
+  has many more candidates.
+
+The decision is the feature NFA of the guided re-match (``acceptance.decide``): matches can only
+land within ``radius_px`` of the prediction (the disc is the area of the null), and the test count
+is every rotation step x every disc-sized place of the window x every window searched.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+from georeg.index.features import detect_and_describe, merged_conf, resample
+from georeg.register import acceptance, crossspectral, matching
+from georeg.register.search import MapSource, QueryFeatures, query_features
+
+SMALL_DEFAULTS: dict[str, Any] = {
+    "enabled": True,
+    "max_side_px": 160,
+    "max_windows": 3,
+    "windows": "hough",
+    "step_deg": 10.0,
+    "max_side": 96,
+    "radii_px": [8.0, 4.0],
+    "ratio": 0.8,
+    "inlier_px": 3.0,
+    "features": {"max_features_per_mpx": 0, "sift": {"contrast_threshold": 0.02}},
+}
+
+
+def small_conf(reg_conf: dict[str, Any] | None) -> dict[str, Any]:
+    """``register.small`` with defaults."""
+    return {**SMALL_DEFAULTS, **((reg_conf or {}).get("small") or {})}
+
+
+def applies(width: int, height: int, reg_conf: dict[str, Any] | None) -> bool:
+    """Whether the small-query fallback is on and the query is small enough for it."""
+    sc = small_conf(reg_conf)
+    return bool(sc["enabled"]) and max(width, height) <= float(sc["max_side_px"])
+
+
+def dense_features_conf(features_conf: dict[str, Any] | None, sc: dict[str, Any]) -> dict:
+    """The map's feature settings with ``register.small.features`` on top (no cap, lower
+    contrast threshold): the same settings for the query and the re-detected window."""
+    base = merged_conf(features_conf or {})
+    extra = sc.get("features") or {}
+    out = {**base, **{k: v for k, v in extra.items() if k != "sift"}}
+    out["sift"] = {**base["sift"], **(extra.get("sift") or {})}
+    return out
+
+
+def window_features(
+    win_u8: np.ndarray, win_to_map: np.ndarray, feature_gsd: float, fconf: dict[str, Any]
+) -> MapSource:
+    """Features of a map window (uint8, 0 = nodata; 3 x 3 window pixel centre -> map x, y)
+    detected at the map's feature GSD, as a plain-array MapSource."""
+    win_px = float(np.sqrt(abs(np.linalg.det(win_to_map[:2, :2]))))
+    img, m, (sx, sy) = resample(win_u8, win_px / feature_gsd, win_u8 > 0)
+    f = detect_and_describe(img, m, fconf)
+    px = (f.xy.astype(np.float64) + 0.5) * np.array([sx, sy]) - 0.5
+    xy = matching.apply_h(win_to_map, px) if len(px) else np.zeros((0, 2))
+    return MapSource(xy, f.desc, feature_gsd, angle=f.angle.astype(np.float64),
+                     scale=f.scale.astype(np.float64) * feature_gsd)  # fmt: skip
+
+
+def fit_similarity(
+    q_xy: np.ndarray, m_xy: np.ndarray, feature_gsd: float, inlier_px: float, seed: int = 0
+) -> matching.HomographyFit | None:
+    """A similarity (rotation, scale, shift: a nadir view of a small footprint) query (col, row)
+    -> map (x, y), by RANSAC then least squares on the inliers; residuals of every match in map
+    feature px. None when it cannot be fitted."""
+    import cv2
+
+    if len(q_xy) < 3:
+        return None
+    g = float(feature_gsd)
+    flip = np.diag([1.0, -1.0, 1.0])  # map y goes up, rows go down: fit in (x, -y)
+    dst = (np.asarray(m_xy, np.float64) * [1.0, -1.0] / g).astype(np.float32)
+    src = np.asarray(q_xy, np.float32)
+    cv2.setRNGSeed(int(seed))
+    M, inl = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC,
+                                         ransacReprojThreshold=float(inlier_px), maxIters=4000,
+                                         confidence=0.999, refineIters=10)  # fmt: skip
+    if M is None or inl is None:
+        return None
+    H = flip @ np.diag([g, g, 1.0]) @ np.vstack([M, [0.0, 0.0, 1.0]])
+    res = np.linalg.norm(matching.apply_h(H, q_xy) - m_xy, axis=1) / g
+    inliers = res <= float(inlier_px)
+    return matching.HomographyFit(H, inliers, res, float(inlier_px), 1, 0.0, {"model": "similarity"})
+
+
+def decide_small(
+    fit: matching.HomographyFit,
+    disc_px: float,
+    n_tests: int,
+    width: int,
+    height: int,
+    q_gsd: float,
+    q_xy: np.ndarray,
+    reg_conf: dict[str, Any],
+) -> dict[str, Any]:
+    """Accept a guided similarity fit: binomial-tail NFA over the disc the matches could land in
+    (``acceptance.log10_nfa_binomial``, sample 2) below ``register.acceptance.log_nfa_max``, a
+    plausible mapping and inliers spread in 2-D (``acceptance.plausibility``, ``inlier_spread``)."""
+    ac = reg_conf.get("acceptance", {}) or {}
+    lnfa, k, ek = acceptance.log10_nfa_binomial(
+        fit.residual_px, disc_px, n_tests, 2, float(ac.get("min_residual_px", 0.5))
+    )
+    out: dict[str, Any] = {"log10_nfa": lnfa, "nfa_k": k, "nfa_eps_px": ek}
+    reasons = []
+    if not lnfa < float(ac.get("log_nfa_max", 0.0)):
+        reasons.append(f"log10 NFA {lnfa:.1f} >= {ac.get('log_nfa_max', 0.0)}")
+    plaus = acceptance.plausibility(fit.H, width, height, q_gsd, ac)
+    reasons += plaus.get("reasons", [])
+    spread = acceptance.inlier_spread(q_xy[fit.inliers], width, height)
+    if spread["minor_major"] < float(ac.get("min_spread_ratio", 0.2)) or spread[
+        "minor_frac"
+    ] < float(ac.get("min_spread_frac", 0.05)):
+        reasons.append("inliers nearly collinear")
+    out.update(accepted=not reasons, reason="; ".join(reasons), spread=spread)
+    return out
+
+
+def small_register(
+    q_u8: np.ndarray,
+    q_gsd: float,
+    win: np.ndarray,
+    win_to_map: np.ndarray,
+    feature_gsd: float,
+    reg_conf: dict[str, Any],
+    features_conf: dict[str, Any] | None = None,
+    seed: int = 0,
+    n_windows: int = 1,
+    qf: QueryFeatures | None = None,
+    region: tuple[float, float, float, float] | None = None,
+) -> dict[str, Any]:
+    """Register a small query in one map window: CFOG peak, then the guided re-match with dense
+    features at radii ``radii_px`` (feature px; a later radius only refines an accepted fit).
+
+    ``q_u8``: query band(s) (0 = nodata; several pooled bands: all give features, the first
+    the correlation); ``win``: window (uint8, 0 = nodata); ``q_gsd``: query GSD in map units.
+    ``qf``: the query's dense features when already computed. ``region`` (map x0, y0, x1, y1):
+    only places whose query centre lies in it are searched and counted (the window should hold
+    the region grown by half the footprint diagonal); None = the whole window. Returns a record like a search
+    part's (``accepted``, ``homography``, ``inliers``, ``log10_nfa``, ...).
+    """
+    from georeg.register.dense import dense_search
+
+    t0 = time.perf_counter()
+    sc = small_conf(reg_conf)
+    rec: dict[str, Any] = {"method": "small", "accepted": False, "homography": None, "inliers": 0}
+    win_px = float(np.sqrt(abs(np.linalg.det(win_to_map[:2, :2]))))
+    q0 = q_u8 if q_u8.ndim == 2 else q_u8[0]
+    box = None
+    places_px = float(win.shape[0] * win.shape[1])
+    if region is not None:
+        inv = np.linalg.inv(win_to_map)
+        cr = matching.apply_h(inv, np.array([[region[0], region[1]], [region[2], region[3]]]))
+        box = (float(cr[:, 0].min()), float(cr[:, 1].min()), float(cr[:, 0].max()),
+               float(cr[:, 1].max()))  # fmt: skip
+        places_px = max(1.0, (box[2] - box[0]) * (box[3] - box[1]))
+    r = dense_search(q0, q_gsd / win_px, win, float(sc["step_deg"]), int(sc["max_side"]),
+                     centre_box=box)  # fmt: skip
+    if r is None:
+        rec.update(reason="no overlap", seconds=time.perf_counter() - t0)
+        return rec
+    rec.update(angle_deg=r.angle_deg, dense_score=r.score, dense_peak_ratio=r.second_ratio)
+    H = win_to_map @ r.S
+    g = float(feature_gsd)
+    fconf = dense_features_conf(features_conf, sc)
+    if qf is None:
+        qf = query_features(q_u8, (0, q_u8.shape[-2]), [q_gsd / g], fconf)
+    src = window_features(win, win_to_map, g, fconf)
+    rec.update(query_features=len(qf), window_features=len(src.xy))
+    if len(qf) < 4 or len(src.xy) < 8:
+        rec.update(reason="too few features", seconds=time.perf_counter() - t0)
+        return rec
+    mxy, mdesc = np.asarray(src.xy, np.float64), np.asarray(src.desc, np.float32)
+    knn = matching.knn2(mdesc)
+    q_xy, q_desc, _ = crossspectral.add_polarity(qf.xy, qf.desc, qf.response)
+    win_area = places_px * (win_px / g) ** 2  # where the query centre may be, feature px
+    n_rot = int(round(360.0 / float(sc["step_deg"])))
+    best = None
+    for k, radius_px in enumerate(float(v) for v in sc["radii_px"]):
+        disc = math.pi * radius_px**2
+        gm = crossspectral.guided_matches(q_xy, q_desc, H, mxy, mdesc, radius_px * g,
+                                          float(sc["ratio"]), knn)  # fmt: skip
+        if len(gm) < 4:
+            break
+        fit = fit_similarity(gm.q_xy, gm.m_xy, g, float(sc["inlier_px"]), seed + k)
+        if fit is None:
+            break
+        n_tests = n_rot * max(1, int(math.ceil(win_area / disc))) * max(1, int(n_windows))
+        dec = decide_small(fit, disc, n_tests, qf.width, qf.height, q_gsd, gm.q_xy, reg_conf)
+        if best is not None and (not dec["accepted"] or fit.n_inliers <= best[1].n_inliers):
+            break  # a smaller radius only replaces an accepted fit by a better one
+        best = (gm, fit, dec, radius_px)
+        H = fit.H
+        if not dec["accepted"]:
+            break
+    if best is not None:
+        gm, fit, dec, radius_px = best
+        inl = fit.inliers
+        rec.update(
+            accepted=bool(dec["accepted"]), homography=fit.H.tolist(), inliers=fit.n_inliers,
+            matches=len(gm), residual_px=fit.rms_px, log10_nfa=dec.get("log10_nfa"),
+            reason=dec.get("reason", ""), radius_px=radius_px,
+            inlier_query_xy=gm.q_xy[inl].tolist(), inlier_map_xy=gm.m_xy[inl].tolist(),
+        )  # fmt: skip
+    rec["seconds"] = time.perf_counter() - t0
+    return rec
+
+
+def small_windows(
+    qf: QueryFeatures,
+    source: MapSource,
+    parts: list[dict[str, Any]],
+    conf: dict[str, Any],
+    gsd_m: float,
+) -> list[tuple[float, ...]]:
+    """The first ``max_windows`` candidate regions: ``windows: hough`` ranks them again with the
+    dense query features ``qf`` (the index's Hough vote, ``register.index``; more query features
+    put the true place in the first three regions more often: 30 vs 26 of the 48 queries of the
+    tuning cities' small subset); ``searched``: the regions the searches tried."""
+    from georeg.register.fuse import candidate_windows
+    from georeg.register.search import footprint_diagonal_m, index_candidates
+
+    sc = small_conf(conf)
+    n = int(sc["max_windows"])
+    if str(sc.get("windows", "hough")) == "searched":
+        return candidate_windows(parts, n)
+    ic = {**(conf.get("index") or {}), "top_candidates": n}
+    diag = footprint_diagonal_m(qf, source.gsd_m, gsd_m)
+    return [tuple(float(v) for v in b) for b, _ in index_candidates(qf, source, diag, ic)][:n]
+
+
+def small_fallback(
+    u8: np.ndarray,
+    full: QueryFeatures,
+    source: MapSource,
+    parts: list[dict[str, Any]],
+    conf: dict[str, Any],
+    gsd_m: float | None,
+    read_window: Any,
+    seed: int = 0,
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """When no search accepted a small query (``register.small``): ``small_register`` in the
+    first ``max_windows`` candidate regions the searches tried; the first accepted one becomes
+    one more (whole-query) part. ``read_window(bounds)`` as ``fuse.dense_fallback``."""
+    from georeg.register.dense import window_u8
+
+    sc = small_conf(conf)
+    h, w = u8.shape[-2:]
+    if any(p.get("accepted") for p in parts):
+        return parts, {"ran": False, "reason": "a search was accepted"}
+    if not applies(w, h, conf):
+        why = "disabled" if not sc["enabled"] else f"query side > {sc['max_side_px']} px"
+        return parts, {"ran": False, "reason": why}
+    if not gsd_m or read_window is None:
+        return parts, {"ran": False, "reason": "no query GSD or no orthophoto"}
+    fconf = dense_features_conf(source.features_conf, sc)
+    qf = query_features(u8, (0, h), [gsd_m / source.gsd_m], fconf)
+    windows = small_windows(qf, source, parts, conf, gsd_m)
+    grow = 0.5 * math.hypot(w, h) * float(gsd_m)  # a centre in the region, the footprint around
+    tried = []
+    for k, b in enumerate(windows):
+        got = read_window((b[0] - grow, b[1] - grow, b[2] + grow, b[3] + grow))
+        if got is None:
+            continue
+        gray, A = got
+        rec = small_register(u8, gsd_m, window_u8(gray), A, source.gsd_m, conf,
+                             source.features_conf, seed + k, len(windows), qf, b)  # fmt: skip
+        rec["bounds"] = [float(v) for v in b]
+        tried.append({k2: rec.get(k2) for k2 in ("bounds", "accepted", "inliers", "matches",
+                      "log10_nfa", "angle_deg", "dense_score", "reason", "seconds")})  # fmt: skip
+        if rec["accepted"]:
+            part = {**rec, "part": len(parts), "rows": [0, full.height], "whole_query": True,
+                    "small": True, "candidates_tried": k + 1, "candidates": []}  # fmt: skip
+            return [*parts, part], {"ran": True, "windows": tried, "accepted_window": k}
+    return parts, {"ran": True, "windows": tried, "accepted_window": None}
