@@ -51,7 +51,8 @@ def plot(scaling: list[dict], cost: list[dict], out: Path) -> None:
                 mpx, [ref * m / mpx[-1] for m in mpx], ":", color="#999999", label="linear"
             )
     axes[0].set(title="CPU per stage", xlabel="map size (Mpx)", ylabel="CPU seconds")
-    axes[1].set(title="peak RSS of the largest job", xlabel="map size (Mpx)", ylabel="MB")
+    axes[1].set(title="peak RSS of the largest job (getrusage: counts mapped files)",
+                xlabel="map size (Mpx)", ylabel="MB")  # fmt: skip
     styles = {("index", "q0"): ("#2ca02c", "o-"), ("index", "outside"): ("#2ca02c", "s--"),
               ("paper", "q0"): ("#d62728", "o-"), ("paper", "outside"): ("#d62728", "s--")}  # fmt: skip
     for (strategy, query), (colour, style) in styles.items():
