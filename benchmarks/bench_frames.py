@@ -216,7 +216,8 @@ def ours(frame: Path, camera: dict, maps: dict, conf: dict | None = None,
     return rec
 
 
-def real_rows(case: str, work: Path, pan: bool = False, conf: dict | None = None) -> list[dict]:
+def real_rows(case: str, work: Path, pan: bool = False, conf: dict | None = None,
+              camera_null: bool = False) -> list[dict]:  # fmt: skip
     """Baseline and ours on every frame of one case (map built under ``work``)."""
     cdir = FRAMES_DEV / case
     ortho = cdir / "map_ortho.tif"
@@ -230,7 +231,7 @@ def real_rows(case: str, work: Path, pan: bool = False, conf: dict | None = None
     out = []
     for frame, cam, truth in case_frames(case):
         b = baseline(frame, cam, ortho, cdir / "elevation.tif")
-        o = ours(frame, cam, maps, conf)
+        o = ours(frame, None if camera_null else cam, maps, conf)  # baseline: always the true camera
         ob = (o.get("camera_center_xyz"), o.get("R_world_to_cam"))
         out.append({"case": label, "frame": frame.stem, "map_gsd": gsd,
                     "baseline": {"status": b["status"], "inliers": b["inliers"], "seconds": b["seconds"],
@@ -281,12 +282,13 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--work", type=Path, default=Path("/tmp/bench_frames_real"))
     ap.add_argument("--conf", type=json.loads, default=None, help="frame_loc overrides (JSON)")
     ap.add_argument("--json", type=Path, default=None, help="rows written here")
+    ap.add_argument("--camera-null", action="store_true", help="ours without the camera (unknown)")
     a = ap.parse_args(argv[1:])
     if not FRAMES_DEV.is_dir():
         sys.exit(f"{FRAMES_DEV} is absent")
     rs = []
     for case in a.cases:
-        rs += real_rows(case, a.work / case, conf=a.conf)
+        rs += real_rows(case, a.work / case, conf=a.conf, camera_null=a.camera_null)
         if a.pan:
             rs += real_rows(case, a.work / f"{case}_pan", pan=True, conf=a.conf)
     real_table(rs)

@@ -285,8 +285,8 @@ def test_exif_focal_used_when_camera_is_null(demo_map, maps, tmp_path):
 
 
 def test_focal_searched_and_refined_without_exif(demo_map, maps):
-    """camera: null, no EXIF: the coarse step picks 800 px (of 480..1360), the refinement on the
-    render stage's inliers brings it to about 700 px (truth), and the pose with it."""
+    """camera: null, no EXIF, a map small enough to match whole: the focal (and k1) from PnP +
+    a joint fit on the whole-map 2D-3D matches, about 700 px (truth), and the pose with it."""
     from georeg.demo.frames import generate_frames
     from georeg.frames.localize import evaluate, localize_frame
 
@@ -299,11 +299,11 @@ def test_focal_searched_and_refined_without_exif(demo_map, maps):
     )
     assert rec["status"] == "registered", rec.get("reason")
     fx = rec["intrinsics"]["fx"]
-    print(fx, json.dumps(rec.get("focal")))
-    assert rec["intrinsics"]["source"].startswith("estimated")
-    assert rec["focal"]["start_fx"] in (480.0, 640.0, 800.0, 1040.0, 1360.0)
-    # measured 709 px (+1.3 %, the frame's lens distortion is not modelled), +-0.2 % (fit)
-    assert abs(fx / 700.0 - 1) < 0.05 and rec["focal"]["fx_rel_sigma"] < 0.02
+    fm = rec["focal_from_matches"]
+    print(fx, json.dumps(fm))
+    assert rec["intrinsics"]["source"].startswith("estimated (whole-map 2D-3D")
+    assert fm["fitted"] and fm["searched_fx"] in (480.0, 640.0, 800.0, 1040.0, 1360.0)
+    assert abs(fx / 700.0 - 1) < 0.05 and fm["fx_rel_sigma"] < 0.02
     ev = evaluate(rec, _truth(out, "oblique45_200.png"))
     print(json.dumps(ev))
     # measured 5.4-6.0 m (h 4.4, v 3.3-4.1), 0.4 deg; the search alone (fx 800): 39 m, 1.8 deg

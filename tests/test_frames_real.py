@@ -185,3 +185,20 @@ def test_unknown_drone_camera_focal_from_the_sensor_table(bench, tmp_path):
     print(got, cam["fx"])
     assert got["source"] == "exif" and "FC6310R" in got["exif_tags"]
     assert got["fx"] == pytest.approx(cam["fx"], rel=0.01)
+
+
+def test_unknown_camera_without_exif(bench, case_map):
+    """camera: null on the metadata-free PNGs: the focal and k1 from PnP + a joint fit on the
+    whole-map 2D-3D matches, then localised as with a known camera. Measured: odm 0136 fx 882
+    (calibrated 912), k1 -0.17 (-0.26), 1.3 m; ngi 0182 fx 835 (833), 11.8 m: seen nearly
+    straight down from 5 km, 0.2 % of focal is 10 m of camera height (docs/BENCHMARKS.md)."""
+    case, maps, gsd = case_map
+    frame, cam, truth = bench.case_frames(case)[0]
+    rec = bench.ours(frame, None, maps, CONF)
+    pos, rot = bench.pose_errors(rec.get("R_world_to_cam"), rec.get("camera_center_xyz"), truth)
+    fm = rec["focal_from_matches"]
+    print(case, frame.stem, rec["status"], f"{pos:.2f} m {rot:.3f} deg", rec["intrinsics"], fm)
+    assert rec["status"] == "registered" and fm["fitted"], rec.get("reason")
+    assert rec["intrinsics"]["source"].startswith("estimated (whole-map 2D-3D")
+    assert rec["intrinsics"]["fx"] == pytest.approx(cam["fx"], rel=0.05)
+    assert pos < (3.0 if case == "odm" else 4 * gsd) and rot < 1.0, (pos, rot)

@@ -93,3 +93,61 @@ def estimate_focal(
         log.warning("focal %.0f px poorly determined (+-%.0f %%): flat or distant inliers",
                     cam.fx, 100 * info["fx_rel_sigma"])  # fmt: skip
     return res, cam.with_pose(res.R, res.C), info
+
+
+def focal_from_matches(xyz: np.ndarray, uv: np.ndarray, width: int, height: int,
+                       factors: list[float], reproj_px: float, seed: int = 0,
+                       max_iters: int = 5000, max_sigma: float = 0.05) -> dict[str, Any] | None:  # fmt: skip
+    """Unknown camera: the focal from 2-D/3-D matches that do not depend on it (the frame's
+    features matched to the map's geo-referenced ones). PnP at fx = each factor x ``width``
+    (principal point at the centre), the most inliers wins; then pose and focal are fitted on
+    its inliers (``refine_focal``) and the fit is kept when its relative sigma is below
+    ``max_sigma`` (relief or an oblique view determine it; a flat nadir view does not). Returns
+    ``{"fx", "searched_fx", "inliers", "fx_rel_sigma", "fitted"}`` or None (no PnP)."""
+    from georeg.frames.pnp import solve_pnp
+
+    best = None
+    for fac in factors:
+        f = float(fac) * width
+        K = np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]], float)
+        res = solve_pnp(xyz, uv, K, reproj_px, max_iters, seed)
+        if res.ok and (best is None or res.inliers > best[1].inliers):
+            best = (f, res)
+    if best is None or best[1].inlier_xyz is None or len(best[1].inlier_xyz) < 12:
+        return None
+    f0, res = best
+    cam = PinholeCamera(f0, f0, (width - 1) / 2, (height - 1) / 2, width, height, res.R, res.C)
+    f, k1, rms, sig = refine_focal_k1(res.inlier_xyz, res.inlier_uv, cam)
+    fitted = bool(np.isfinite(f) and sig < max_sigma and 0.3 * width <= f <= 3.0 * width
+                  and abs(k1) < 0.5)  # fmt: skip
+    return {"fx": f if fitted else f0, "k1": k1 if fitted else 0.0, "searched_fx": f0,
+            "inliers": int(res.inliers), "fx_rel_sigma": float(sig), "lsq_rms_px": float(rms),
+            "fitted": fitted}  # fmt: skip
+
+
+def refine_focal_k1(xyz: np.ndarray, uv: np.ndarray, cam: PinholeCamera, loss_px: float = 2.0
+                    ) -> tuple[float, float, float, float]:  # fmt: skip
+    """(f, k1, RMS px, relative sigma of f): robust least squares of the reprojection error over
+    the pose, log f and the first radial distortion term k1 (OpenCV's model, normalised
+    coordinates), principal point kept. An uncalibrated lens bends the image enough (k1 ~ -0.26
+    on a DJI FC6310 frame) to move a focal fitted without it by a third."""
+    o = xyz.mean(axis=0)
+    X = np.asarray(xyz, float) - o
+    r0 = cv2.Rodrigues(np.asarray(cam.R, float))[0].ravel()
+    x0 = np.r_[r0, np.asarray(cam.C, float) - o, np.log(cam.fx), 0.0]
+
+    def resid(p: np.ndarray) -> np.ndarray:
+        R = cv2.Rodrigues(p[:3])[0]
+        Xc = (X - p[3:6]) @ R.T
+        z = np.where(np.abs(Xc[:, 2]) < 1e-6, 1e-6, Xc[:, 2])
+        x, y = Xc[:, 0] / z, Xc[:, 1] / z
+        d = 1.0 + p[7] * (x * x + y * y)
+        f = np.exp(p[6])
+        return np.r_[f * x * d + cam.cx - uv[:, 0], f * y * d + cam.cy - uv[:, 1]]
+
+    sol = least_squares(resid, x0, loss="huber", f_scale=loss_px, x_scale="jac", max_nfev=400)
+    r = resid(sol.x).reshape(2, -1)
+    rms = float(np.sqrt(np.mean(np.sum(r**2, axis=0))))
+    dof = max(1, r.size - len(sol.x))
+    cov = np.linalg.pinv(sol.jac.T @ sol.jac) * float(np.sum(r**2)) / dof
+    return float(np.exp(sol.x[6])), float(sol.x[7]), rms, float(np.sqrt(max(cov[6, 6], 0.0)))

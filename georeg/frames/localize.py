@@ -41,7 +41,7 @@ from georeg.frames.direct import (
     verify,
 )
 from georeg.frames.exif import exif_camera
-from georeg.frames.focal import estimate_focal, refine_focal
+from georeg.frames.focal import estimate_focal, focal_from_matches, refine_focal
 from georeg.frames.outputs import (
     footprint_window,
     footprint_xy,
@@ -284,6 +284,33 @@ def _cam_record(cam: PinholeCamera) -> dict:
     return {"camera_center_xyz": [float(v) for v in cam.C], "R_world_to_cam": np.asarray(cam.R).tolist()}
 
 
+def whole_map_camera(rgb: np.ndarray, w: int, h: int, maps: MapSources, feat_conf: dict,
+                     vconf: dict, c: dict, rec: dict) -> dict | None:  # fmt: skip
+    """``camera: null`` on a small map: the frame matched once to the whole map's features (the
+    matches do not depend on the focal), the focal from PnP over ``focal_factors`` and a joint
+    pose + focal fit (``focal.focal_from_matches``); recorded in ``rec["focal_from_matches"]``.
+    None when no focal gives a pose (then the coarse focal search runs as before)."""
+    t = time.perf_counter()
+    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    cam0 = PinholeCamera(float(w), float(w), (w - 1) / 2, (h - 1) / 2, w, h, np.eye(3), np.zeros(3))
+    _, mt = direct_pose(gray, cam0, maps.ortho, maps.dsm, feat_conf, maps.gsd, 0.0, vconf,
+                        maps.flat_z, maps.bounds(), min(1.0, float(np.sqrt(3e6 / (h * w)))),
+                        maps.window_cache)  # fmt: skip
+    est = focal_from_matches(mt.xyz, mt.uv, w, h, list(c["focal_factors"]),
+                             float(vconf["reproj_px"]), int(vconf["seed"]))  # fmt: skip
+    rec["focal_from_matches"] = {**(est or {"fitted": False, "reason": "no PnP at any focal"}),
+                                 "matches": int(len(mt.uv)), "seconds": time.perf_counter() - t}  # fmt: skip
+    if est is None:
+        return None
+    log.info("camera: null -> fx %.0f px, k1 %.3f from %d whole-map 2D-3D inliers (%s, sigma %.1f %%)",
+             est["fx"], est.get("k1", 0.0), est["inliers"], "fitted" if est["fitted"] else "searched",
+             100 * est["fx_rel_sigma"])  # fmt: skip
+    how = "pose + focal fit" if est["fitted"] else "best of focal_factors"
+    return {"fx": est["fx"], "fy": est["fx"], "cx": (w - 1) / 2, "cy": (h - 1) / 2,
+            "dist": [float(est.get("k1", 0.0)), 0.0, 0.0, 0.0, 0.0],
+            "source": f"estimated (whole-map 2D-3D matches, {how})"}
+
+
 def localize_image(
     rgb: np.ndarray, path: str, camera: dict | None, maps: MapSources, conf: dict
 ) -> tuple[dict, Any]:
@@ -323,6 +350,8 @@ def localize_image(
             hyps.append(("direct 2D-3D (whole map)", cam0.with_pose(dr.pnp.R, dr.pnp.C), dr.pnp))
         timings["direct_s"] = timings.get("direct_s", 0.0) + time.perf_counter() - t
 
+    if not camera and map_px <= int(vconf["whole_map_first_px"]):
+        camera = whole_map_camera(rgb, w, h, maps, feat_conf, vconf, c, rec)
     if camera:
         K, dist = camera_matrix(camera, w, h)
         und = cv2.undistort(rgb, K, dist) if np.any(dist) else rgb
