@@ -202,3 +202,22 @@ def test_unknown_camera_without_exif(bench, case_map):
     assert rec["intrinsics"]["source"].startswith("estimated (whole-map 2D-3D")
     assert rec["intrinsics"]["fx"] == pytest.approx(cam["fx"], rel=0.05)
     assert pos < (3.0 if case == "odm" else 4 * gsd) and rot < 1.0, (pos, rot)
+
+
+def test_unknown_camera_on_a_map_too_large_to_match_whole(bench, tmp_path):
+    """camera: null with the whole-map step switched off (as on a map above
+    ``direct.whole_map_first_px``): the coarse focal search finds the place, and the focal and k1
+    are fitted on the 2D-3D matches of the coarse pose's window. Measured on odm 0136: fx 947
+    (calibrated 912), k1 -0.22 (-0.26), 4.7 m (the searched focal and the render stage instead:
+    38.7 m; docs/BENCHMARKS.md)."""
+    cdir = FRAMES_DEV / "odm"
+    frame, cam, truth = bench.case_frames("odm")[0]
+    maps = bench.build_case_map(cdir / "map_ortho.tif", cdir / "elevation.tif", tmp_path / "map")
+    rec = bench.ours(frame, None, maps, {"direct": {"whole_map_first_px": 0}})
+    pos, rot = bench.pose_errors(rec.get("R_world_to_cam"), rec.get("camera_center_xyz"), truth)
+    fm = rec["focal_from_matches"]
+    print(frame.stem, rec["status"], f"{pos:.2f} m {rot:.3f} deg", fm)
+    assert rec["status"] == "registered" and fm["where"] == "coarse-window" and fm["fitted"]
+    assert rec["intrinsics"]["fx"] == pytest.approx(cam["fx"], rel=0.1)
+    assert -0.35 < rec["intrinsics"]["dist"][0] < -0.1  # the lens' barrel distortion (-0.26)
+    assert pos < 10.0 and rot < 2.0, (pos, rot)

@@ -74,6 +74,7 @@ DEFAULTS: dict[str, Any] = {
     "max_cloud_extent_m": 1600.0,
     "focal_factors": [0.6, 0.8, 1.0, 1.3, 1.7],  # unknown camera: fx candidates x image width
     "focal_rounds": 4,  # unknown camera: focal refinement + render-stage rounds (0: search only)
+    "focal_from_window": True,  # unknown camera, large map: focal + k1 from the coarse window's matches
     "coarse": {},
     "pnp": {},
     "refine": {"enabled": True},
@@ -287,28 +288,36 @@ def _cam_record(cam: PinholeCamera) -> dict:
 def whole_map_camera(rgb: np.ndarray, w: int, h: int, maps: MapSources, feat_conf: dict,
                      vconf: dict, c: dict, rec: dict) -> dict | None:  # fmt: skip
     """``camera: null`` on a small map: the frame matched once to the whole map's features (the
-    matches do not depend on the focal), the focal from PnP over ``focal_factors`` and a joint
-    pose + focal fit (``focal.focal_from_matches``); recorded in ``rec["focal_from_matches"]``.
-    None when no focal gives a pose (then the coarse focal search runs as before)."""
+    matches do not depend on the focal), then ``camera_from_matches``."""
     t = time.perf_counter()
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
     cam0 = PinholeCamera(float(w), float(w), (w - 1) / 2, (h - 1) / 2, w, h, np.eye(3), np.zeros(3))
     _, mt = direct_pose(gray, cam0, maps.ortho, maps.dsm, feat_conf, maps.gsd, 0.0, vconf,
                         maps.flat_z, maps.bounds(), min(1.0, float(np.sqrt(3e6 / (h * w)))),
                         maps.window_cache)  # fmt: skip
+    return camera_from_matches(mt, w, h, vconf, c, rec, "whole-map", time.perf_counter() - t)
+
+
+def camera_from_matches(mt: Matches, w: int, h: int, vconf: dict, c: dict, rec: dict, where: str,
+                        seconds: float = 0.0) -> dict | None:  # fmt: skip
+    """The camera of a frame from its 2-D/3-D matches ``mt`` (``focal.focal_from_matches``: PnP
+    over ``focal_factors``, then pose + focal + k1 fitted); recorded in
+    ``rec["focal_from_matches"]``. None when no focal gives a pose."""
+    t = time.perf_counter()
     est = focal_from_matches(mt.xyz, mt.uv, w, h, list(c["focal_factors"]),
                              float(vconf["reproj_px"]), int(vconf["seed"]))  # fmt: skip
     rec["focal_from_matches"] = {**(est or {"fitted": False, "reason": "no PnP at any focal"}),
-                                 "matches": int(len(mt.uv)), "seconds": time.perf_counter() - t}  # fmt: skip
+                                 "matches": int(len(mt.uv)), "where": where,
+                                 "seconds": seconds + time.perf_counter() - t}  # fmt: skip
     if est is None:
         return None
-    log.info("camera: null -> fx %.0f px, k1 %.3f from %d whole-map 2D-3D inliers (%s, sigma %.1f %%)",
-             est["fx"], est.get("k1", 0.0), est["inliers"], "fitted" if est["fitted"] else "searched",
-             100 * est["fx_rel_sigma"])  # fmt: skip
+    log.info("camera: null -> fx %.0f px, k1 %.3f from %d %s 2D-3D inliers (%s, sigma %.1f %%)",
+             est["fx"], est.get("k1", 0.0), est["inliers"], where,
+             "fitted" if est["fitted"] else "searched", 100 * est["fx_rel_sigma"])  # fmt: skip
     how = "pose + focal fit" if est["fitted"] else "best of focal_factors"
     return {"fx": est["fx"], "fy": est["fx"], "cx": (w - 1) / 2, "cy": (h - 1) / 2,
             "dist": [float(est.get("k1", 0.0)), 0.0, 0.0, 0.0, 0.0],
-            "source": f"estimated (whole-map 2D-3D matches, {how})"}
+            "source": f"estimated ({where} 2D-3D matches, {how})"}
 
 
 def localize_image(
@@ -376,6 +385,18 @@ def localize_image(
         dist = np.zeros(5)
         focal_note = "estimated (focal search in PnP)"
         timings["coarse_s"] = time.perf_counter() - t0
+        if co.ok and c.get("focal_from_window", True):  # the matches under the coarse pose
+            t = time.perf_counter()
+            cam_c = PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, co.R, co.C)
+            mt = match_window(gray, cam_c, maps.ortho, maps.dsm, feat_conf, maps.gsd,
+                              maps.ground_z(co.C), vconf, maps.flat_z)  # fmt: skip
+            est = camera_from_matches(mt, w, h, vconf, c, rec, "coarse-window", time.perf_counter() - t)
+            if est and est["source"].endswith("pose + focal fit)"):  # a determined focal only
+                camera = est
+                K, dist = camera_matrix(camera, w, h)
+                und = cv2.undistort(rgb, K, dist) if np.any(dist) else rgb
+                gray = cv2.cvtColor(und, cv2.COLOR_RGB2GRAY)
+                focal_note = camera["source"]
     rec["intrinsics"] = {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]),
                          "cy": float(K[1, 2]), "dist": [float(v) for v in dist], "width": w,
                          "height": h, "source": focal_note}  # fmt: skip
