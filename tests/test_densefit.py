@@ -2,27 +2,16 @@
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import pytest
 from rasterio.transform import Affine
+from test_refine import _texture
 
 from georeg.register.densefit import dense_fit, fit_affine_lsq, fit_homography_lsq
 from georeg.register.geolocation import apply_h, map_xy
 from georeg.register.refine import MapImage, refine
 
 W, HGT = 200, 200
-
-
-def _texture(rng: np.random.Generator, n: int) -> np.ndarray:
-    """Blobs and sharp-edged rectangles (roofs, roads), float32 0..255."""
-    img = cv2.GaussianBlur(rng.normal(0, 1, (n, n)).astype(np.float32), (0, 0), 3.0)
-    img = (img - img.min()) / (np.ptp(img) + 1e-9) * 120 + 40
-    for _ in range(n * n // 400):
-        x, y = rng.integers(0, n - 12, 2)
-        w, h = rng.integers(4, 12, 2)
-        img[y : y + h, x : x + w] = rng.uniform(0, 255)
-    return cv2.GaussianBlur(img, (0, 0), 0.6)
 
 
 def _similarity_about(p: tuple[float, float], scale: float, deg: float) -> np.ndarray:

@@ -27,31 +27,41 @@ from georeg.frames.render import PinholeCamera, PointCloud
 log = logging.getLogger(__name__)
 
 
+def _fit_pose_focal(xyz: np.ndarray, uv: np.ndarray, cam: PinholeCamera, loss_px: float,
+                    with_k1: bool, max_nfev: int) -> tuple[np.ndarray, np.ndarray, float, float]:  # fmt: skip
+    """Robust least squares of the reprojection error over the pose, log f (fx = fy) and, with
+    ``with_k1``, OpenCV's first radial term; principal point kept. Returns (parameters:
+    rotation vector, centre - origin, log f[, k1]; origin; RMS px; relative sigma of f)."""
+    o = xyz.mean(axis=0)
+    X = np.asarray(xyz, float) - o
+    r0 = cv2.Rodrigues(np.asarray(cam.R, float))[0].ravel()
+    x0 = np.r_[r0, np.asarray(cam.C, float) - o, np.log(cam.fx), [0.0] if with_k1 else []]
+
+    def resid(p: np.ndarray) -> np.ndarray:
+        R = cv2.Rodrigues(p[:3])[0]
+        Xc = (X - p[3:6]) @ R.T
+        z = np.where(np.abs(Xc[:, 2]) < 1e-6, 1e-6, Xc[:, 2])
+        x, y = Xc[:, 0] / z, Xc[:, 1] / z
+        d = 1.0 + p[7] * (x * x + y * y) if with_k1 else 1.0
+        f = np.exp(p[6])
+        return np.r_[f * x * d + cam.cx - uv[:, 0], f * y * d + cam.cy - uv[:, 1]]
+
+    sol = least_squares(resid, x0, loss="huber", f_scale=loss_px, x_scale="jac", max_nfev=max_nfev)
+    r = resid(sol.x).reshape(2, -1)
+    rms = float(np.sqrt(np.mean(np.sum(r**2, axis=0))))
+    dof = max(1, r.size - len(sol.x))
+    cov = np.linalg.pinv(sol.jac.T @ sol.jac) * float(np.sum(r**2)) / dof
+    return sol.x, o, rms, float(np.sqrt(max(cov[6, 6], 0.0)))  # sigma of log f = relative
+
+
 def refine_focal(
     xyz: np.ndarray, uv: np.ndarray, cam: PinholeCamera, loss_px: float = 2.0
 ) -> tuple[float, np.ndarray, np.ndarray, float, float]:
     """(f, R, C, RMS px, relative standard deviation of f) minimising the robust reprojection
     error of ``xyz`` -> ``uv`` over the pose and f (fx = fy), from ``cam``; principal point
     kept."""
-    o = xyz.mean(axis=0)
-    X = np.asarray(xyz, float) - o
-    r0 = cv2.Rodrigues(np.asarray(cam.R, float))[0].ravel()
-    x0 = np.r_[r0, np.asarray(cam.C, float) - o, np.log(cam.fx)]
-
-    def resid(p: np.ndarray) -> np.ndarray:
-        R = cv2.Rodrigues(p[:3])[0]
-        Xc = (X - p[3:6]) @ R.T
-        z = np.where(np.abs(Xc[:, 2]) < 1e-6, 1e-6, Xc[:, 2])
-        f = np.exp(p[6])
-        return np.r_[f * Xc[:, 0] / z + cam.cx - uv[:, 0], f * Xc[:, 1] / z + cam.cy - uv[:, 1]]
-
-    sol = least_squares(resid, x0, loss="huber", f_scale=loss_px, x_scale="jac", max_nfev=200)
-    r = resid(sol.x).reshape(2, -1)
-    rms = float(np.sqrt(np.mean(np.sum(r**2, axis=0))))
-    dof = max(1, r.size - len(sol.x))
-    cov = np.linalg.pinv(sol.jac.T @ sol.jac) * float(np.sum(r**2)) / dof
-    sigma = float(np.sqrt(max(cov[6, 6], 0.0)))  # of log f = relative, for small values
-    return float(np.exp(sol.x[6])), cv2.Rodrigues(sol.x[:3])[0], sol.x[3:6] + o, rms, sigma
+    p, o, rms, sigma = _fit_pose_focal(xyz, uv, cam, loss_px, False, 200)
+    return float(np.exp(p[6])), cv2.Rodrigues(p[:3])[0], p[3:6] + o, rms, sigma
 
 
 def estimate_focal(
@@ -127,27 +137,8 @@ def focal_from_matches(xyz: np.ndarray, uv: np.ndarray, width: int, height: int,
 
 def refine_focal_k1(xyz: np.ndarray, uv: np.ndarray, cam: PinholeCamera, loss_px: float = 2.0
                     ) -> tuple[float, float, float, float]:  # fmt: skip
-    """(f, k1, RMS px, relative sigma of f): robust least squares of the reprojection error over
-    the pose, log f and the first radial distortion term k1 (OpenCV's model, normalised
-    coordinates), principal point kept. An uncalibrated lens bends the image enough (k1 ~ -0.26
-    on a DJI FC6310 frame) to move a focal fitted without it by a third."""
-    o = xyz.mean(axis=0)
-    X = np.asarray(xyz, float) - o
-    r0 = cv2.Rodrigues(np.asarray(cam.R, float))[0].ravel()
-    x0 = np.r_[r0, np.asarray(cam.C, float) - o, np.log(cam.fx), 0.0]
-
-    def resid(p: np.ndarray) -> np.ndarray:
-        R = cv2.Rodrigues(p[:3])[0]
-        Xc = (X - p[3:6]) @ R.T
-        z = np.where(np.abs(Xc[:, 2]) < 1e-6, 1e-6, Xc[:, 2])
-        x, y = Xc[:, 0] / z, Xc[:, 1] / z
-        d = 1.0 + p[7] * (x * x + y * y)
-        f = np.exp(p[6])
-        return np.r_[f * x * d + cam.cx - uv[:, 0], f * y * d + cam.cy - uv[:, 1]]
-
-    sol = least_squares(resid, x0, loss="huber", f_scale=loss_px, x_scale="jac", max_nfev=400)
-    r = resid(sol.x).reshape(2, -1)
-    rms = float(np.sqrt(np.mean(np.sum(r**2, axis=0))))
-    dof = max(1, r.size - len(sol.x))
-    cov = np.linalg.pinv(sol.jac.T @ sol.jac) * float(np.sum(r**2)) / dof
-    return float(np.exp(sol.x[6])), float(sol.x[7]), rms, float(np.sqrt(max(cov[6, 6], 0.0)))
+    """(f, k1, RMS px, relative sigma of f): ``refine_focal`` with the first radial distortion
+    term k1 fitted too (normalised coordinates). An uncalibrated lens bends the image enough
+    (k1 ~ -0.26 on a DJI FC6310 frame) to move a focal fitted without it by a third."""
+    p, _, rms, sigma = _fit_pose_focal(xyz, uv, cam, loss_px, True, 400)
+    return float(np.exp(p[6])), float(p[7]), rms, sigma

@@ -257,23 +257,38 @@ def dense_fallback(
         why = "disabled" if not dc["enabled"] else "the query GSD is unknown"
         return parts, {"ran": False, "reason": why}
     windows = candidate_windows(parts, int(dc["max_windows"]))
+
+    def register(k: int, gray: np.ndarray, A: np.ndarray, b: tuple[float, ...]) -> dict[str, Any]:
+        return dense_register(u8, full, gsd_m, window_u8(gray), A, source, conf, seed + k,
+                              len(windows))  # fmt: skip
+
+    return first_accepted_window(windows, read_window, register, parts, full.height, "dense",
+                                 ("angle_deg", "dense_z", "dense_log10_nfa"))  # fmt: skip
+
+
+def first_accepted_window(windows: list[tuple[float, ...]], read_window: Any, register: Any,
+                          parts: list[dict[str, Any]], height: int, flag: str,
+                          keys: tuple[str, ...] = (), grow: float = 0.0,
+                          ) -> tuple[list[dict[str, Any]], dict[str, Any]]:  # fmt: skip
+    """A fallback's loop over candidate windows: each window (grown by ``grow`` map units) read
+    by ``read_window``, then ``register(k, gray, A, bounds)``; the first accepted record becomes
+    one more whole-query part, marked ``flag``. Returns the parts and the record of the windows
+    tried (their bounds, acceptance, inliers, NFA, reason, seconds and ``keys``)."""
     tried = []
     for k, b in enumerate(windows):
-        got = read_window(b)
+        got = read_window((b[0] - grow, b[1] - grow, b[2] + grow, b[3] + grow))
         if got is None:
             continue
-        gray, A = got
-        rec = dense_register(u8, full, gsd_m, window_u8(gray), A, source, conf, seed + k,
-                             len(windows))  # fmt: skip
-        rec["bounds"] = list(b)
-        tried.append({k2: rec.get(k2) for k2 in ("bounds", "accepted", "inliers", "log10_nfa",
-                      "angle_deg", "dense_z", "dense_log10_nfa", "reason", "seconds")})  # fmt: skip
-        log.info("dense search in window %d: %s inliers, log10 NFA %s -> %s", k,
+        rec = register(k, *got, b)
+        rec["bounds"] = [float(v) for v in b]
+        tried.append({k2: rec.get(k2) for k2 in ("bounds", "accepted", "inliers", "matches",
+                      "log10_nfa", *keys, "reason", "seconds")})  # fmt: skip
+        log.info("%s search in window %d: %s inliers, log10 NFA %s -> %s", flag, k,
                  rec.get("inliers"), rec.get("log10_nfa"),
                  "ACCEPT" if rec["accepted"] else rec.get("reason"))  # fmt: skip
         if rec["accepted"]:
-            part = {**rec, "part": len(parts), "rows": [0, full.height], "whole_query": True,
-                    "dense": True, "candidates_tried": k + 1, "candidates": []}  # fmt: skip
+            part = {**rec, "part": len(parts), "rows": [0, height], "whole_query": True,
+                    flag: True, "candidates_tried": k + 1, "candidates": []}  # fmt: skip
             return [*parts, part], {"ran": True, "windows": tried, "accepted_window": k}
     return parts, {"ran": True, "windows": tried, "accepted_window": None}
 

@@ -264,6 +264,7 @@ def small_fallback(
     first ``max_windows`` candidate regions the searches tried; the first accepted one becomes
     one more (whole-query) part. ``read_window(bounds)`` as ``fuse.dense_fallback``."""
     from georeg.register.dense import window_u8
+    from georeg.register.fuse import first_accepted_window
 
     sc = small_conf(conf)
     h, w = u8.shape[-2:]
@@ -278,19 +279,10 @@ def small_fallback(
     qf = query_features(u8, (0, h), [gsd_m / source.gsd_m], fconf)
     windows = small_windows(qf, source, parts, conf, gsd_m)
     grow = 0.5 * math.hypot(w, h) * float(gsd_m)  # a centre in the region, the footprint around
-    tried = []
-    for k, b in enumerate(windows):
-        got = read_window((b[0] - grow, b[1] - grow, b[2] + grow, b[3] + grow))
-        if got is None:
-            continue
-        gray, A = got
-        rec = small_register(u8, gsd_m, window_u8(gray), A, source.gsd_m, conf,
-                             source.features_conf, seed + k, len(windows), qf, b)  # fmt: skip
-        rec["bounds"] = [float(v) for v in b]
-        tried.append({k2: rec.get(k2) for k2 in ("bounds", "accepted", "inliers", "matches",
-                      "log10_nfa", "angle_deg", "dense_score", "reason", "seconds")})  # fmt: skip
-        if rec["accepted"]:
-            part = {**rec, "part": len(parts), "rows": [0, full.height], "whole_query": True,
-                    "small": True, "candidates_tried": k + 1, "candidates": []}  # fmt: skip
-            return [*parts, part], {"ran": True, "windows": tried, "accepted_window": k}
-    return parts, {"ran": True, "windows": tried, "accepted_window": None}
+
+    def register(k: int, gray: np.ndarray, A: np.ndarray, b: tuple[float, ...]) -> dict[str, Any]:
+        return small_register(u8, gsd_m, window_u8(gray), A, source.gsd_m, conf,
+                              source.features_conf, seed + k, len(windows), qf, b)  # fmt: skip
+
+    return first_accepted_window(windows, read_window, register, parts, full.height, "small",
+                                 ("angle_deg", "dense_score"), grow)  # fmt: skip
