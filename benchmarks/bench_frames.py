@@ -12,6 +12,8 @@ z from the elevation raster, PnP in RANSAC + LM) and by this project's ``localiz
     python benchmarks/bench_frames.py real [--cases ngi odm] [--pan] [--work DIR]
 
 ``--pan`` also runs both against a panchromatic (1-band) copy of each map orthophoto.
+``--variants [gsd2 gsd4 u16 rgbn nodem half]`` runs only ours against variants of each case's map
+or frames a user may hand over (coarser ortho, 16-bit, 4 bands, no elevation, halved frames).
 """
 
 from __future__ import annotations
@@ -272,6 +274,77 @@ def stage_table(rs: list[dict]) -> None:
               + " |")  # fmt: skip
 
 
+# ----------------------------------------------------------------------------- map variants
+
+VARIANTS = ("gsd2", "gsd4", "u16", "rgbn", "nodem", "half")
+
+
+def _rewrite(src: Path, dst: Path, fn, **prof_update) -> Path:
+    """``dst`` = ``fn``(bands of ``src``) with the same grid (profile updated)."""
+    import rasterio
+
+    with rasterio.open(src) as s:
+        prof, a = s.profile.copy(), s.read()
+    a = fn(a)
+    prof.update(count=a.shape[0], dtype=str(a.dtype), **prof_update)
+    with rasterio.open(dst, "w", **prof) as d:
+        d.write(a)
+    return dst
+
+
+def coarser(src: Path, dst: Path, f: int) -> Path:
+    """The orthophoto averaged over f x f pixels (a map f times coarser)."""
+    import rasterio
+    from rasterio.enums import Resampling
+
+    with rasterio.open(src) as s:
+        prof, h, w = s.profile.copy(), s.height // f, s.width // f
+        a = s.read(out_shape=(s.count, h, w), resampling=Resampling.average)
+        prof.update(width=w, height=h, transform=s.transform * s.transform.scale(s.width / w, s.height / h))
+    with rasterio.open(dst, "w", **prof) as d:
+        d.write(a)
+    return dst
+
+
+def variant_rows(case: str, variant: str, work: Path) -> list[dict]:
+    """Ours on every frame of ``case`` against a variant of its map or frames a user may hand
+    over: ``gsd2`` / ``gsd4`` (ortho 2 / 4 x coarser), ``u16`` (12-bit values in uint16), ``rgbn``
+    (a 4th band), ``nodem`` (no elevation: flat ground at the DEM's median), ``half`` (frames
+    halved, intrinsics scaled). Errors against the surveyed truth."""
+    import rasterio
+
+    cdir = FRAMES_DEV / case
+    work.mkdir(parents=True, exist_ok=True)
+    ortho, dem, gz = cdir / "map_ortho.tif", cdir / "elevation.tif", 0.0
+    if variant.startswith("gsd"):
+        ortho = coarser(ortho, work / "ortho.tif", int(variant[3:]))
+    elif variant == "u16":
+        ortho = _rewrite(ortho, work / "ortho.tif", lambda a: np.where(a > 0, a.astype(np.uint16) * 16 + 3, 0).astype(np.uint16))
+    elif variant == "rgbn":
+        ortho = _rewrite(ortho, work / "ortho.tif", lambda a: np.concatenate([a, np.clip(a[1:2] * 1.3, 0, 255).astype(a.dtype)]))
+    elif variant == "nodem":
+        with rasterio.open(dem) as e:
+            gz = float(np.nanmedian(e.read(1, masked=True).filled(np.nan)))
+        dem = None
+    maps = build_case_map(ortho, dem, work / "map")
+    out = []
+    for frame, cam, truth in case_frames(case):
+        if variant == "half":
+            img = cv2.imread(str(frame), cv2.IMREAD_COLOR)
+            frame = work / f"{frame.stem}.png"
+            cv2.imwrite(str(frame), cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA))
+            cam = {**cam, "fx": cam["fx"] / 2, "fy": cam["fy"] / 2, "cx": (cam["cx"] + 0.5) / 2 - 0.5,
+                   "cy": (cam["cy"] + 0.5) / 2 - 0.5}  # fmt: skip
+        o = ours(frame, cam, maps, None, ground_z=gz)
+        p, a = pose_errors(o.get("R_world_to_cam"), o.get("camera_center_xyz"), truth)
+        out.append({"case": case, "variant": variant, "frame": frame.stem, "status": o["status"],
+                    "position_m": p, "rotation_deg": a, "path": o.get("path"),
+                    "score": (o.get("verification") or {}).get("score"), "seconds": o["seconds"]})  # fmt: skip
+        print(f"| {case} | {variant} | {frame.stem} | {o['status']} | {p:.2f} m, {a:.2f} deg | "
+              f"{o.get('path') or '-'} ({out[-1]['score']}) | {o['seconds']:.1f} |", flush=True)  # fmt: skip
+    return out
+
+
 def main(argv: list[str]) -> None:
     if not argv or argv[0] != "real":
         demo_table(argv)
@@ -283,9 +356,18 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--conf", type=json.loads, default=None, help="frame_loc overrides (JSON)")
     ap.add_argument("--json", type=Path, default=None, help="rows written here")
     ap.add_argument("--camera-null", action="store_true", help="ours without the camera (unknown)")
+    ap.add_argument("--variants", nargs="*", default=None, choices=VARIANTS,
+                    help="only ours against these variants of each case's map / frames")  # fmt: skip
     a = ap.parse_args(argv[1:])
     if not FRAMES_DEV.is_dir():
         sys.exit(f"{FRAMES_DEV} is absent")
+    if a.variants is not None:
+        print("| case | variant | frame | status | error | path (score) | s |\n|---|---|---|---|---|---|---|")
+        vr = [r for case in a.cases for v in (a.variants or VARIANTS)
+              for r in variant_rows(case, v, a.work / f"{case}_{v}")]  # fmt: skip
+        if a.json:
+            a.json.write_text(json.dumps(vr, indent=1, default=float))
+        return
     rs = []
     for case in a.cases:
         rs += real_rows(case, a.work / case, conf=a.conf, camera_null=a.camera_null)

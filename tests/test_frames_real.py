@@ -107,7 +107,8 @@ def test_drone_frames_without_dsm_on_flat_ground(bench, tmp_path):
     assert maps["dsm"] is None
     for name, rec, pos, rot in _localise(bench, "odm", maps, ["0142"], ground_z=z0):
         assert rec["status"] == "registered", (name, rec.get("reason"))
-        assert rec["ground"] == {"source": "flat (no DSM given)", "z": z0}
+        assert rec["ground"]["source"] == "flat (no DSM given)" and rec["ground"]["z"] == z0
+        assert "flat ground" in rec["ground"]["warning"]  # said in the record and the report
         assert pos < 5.0 and rot < 3.0, (name, pos, rot)
 
 

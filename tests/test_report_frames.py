@@ -225,3 +225,18 @@ def test_no_frame_sets_no_section(tmp_path: Path) -> None:
     build_report([], {}, tmp_path / "index.html", log_roots=[])
     text = (tmp_path / "index.html").read_text()
     assert 'id="frames"' not in text and "frame set" not in text
+
+
+def test_flat_ground_is_said_above_the_table(tmp_path: Path) -> None:
+    """Poses localised without elevation carry a warning; the set's section repeats it, counted."""
+    from georeg.frames.localize import FLAT_GROUND_WARNING
+    from georeg.report.frames_html import set_section
+
+    ground = {"source": "flat (no DSM given)", "z": 0.0, "warning": FLAT_GROUND_WARNING}
+    poses = [_entry("a", "registered", "registered", PNP_A, ERR_A, ground=ground),
+             _entry("b", "not_found", "not_found", ground=ground), _entry("c", "not_found", "not_found")]  # fmt: skip
+    (tmp_path / "poses.json").write_text(json.dumps(poses))
+    text = set_section("drone", tmp_path / "poses.json")
+    assert 'data-key="flat_ground" data-value="2"' in text and "2 of 3 entries" in text
+    (tmp_path / "poses.json").write_text(json.dumps(poses[2:]))
+    assert "flat_ground" not in set_section("drone", tmp_path / "poses.json")

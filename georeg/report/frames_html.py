@@ -267,6 +267,11 @@ def set_section(name: str, poses_json: str | Path, truth_json: str | Path | None
     if not poses:
         parts.append('<p class="note">no entries in poses.json</p></section>')
         return "\n".join(parts)
+    flat = [p for p in poses if (p.get("ground") or {}).get("warning")]
+    if flat:  # no elevation in the map: say so above the figures
+        parts.append(f'<p class="note bad" data-key="flat_ground" data-value="{len(flat)}">'
+                     f"{len(flat)} of {len(poses)} entries localised on a flat ground (the map has "
+                     f"no elevation): {html.escape(str(flat[0]['ground']['warning']))}.</p>")  # fmt: skip
     if len(poses) <= MAX_ROWS:
         parts.append(frame_table(poses, name))
         files = overlay_files(poses, Path(poses_json).parent / "overlays", None)
