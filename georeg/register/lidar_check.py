@@ -53,7 +53,7 @@ DEFAULTS: dict[str, Any] = {
     "min_score": 0.15,  # tie-point peak NCC
     "coherent_px": 1.5,  # shift within this of the median shift (shrunk px)
     "null_shift": 3.0,  # perturbed hypotheses: H moved by this x search_px (shrunk px)
-    "min_points": 30,  # measurable tie points needed (valid windows)
+    "min_points": 50,  # measurable tie points needed (valid windows)
     "min_coherent": 0.08,  # coherent fraction at H
     "min_gain": 3.0,  # ... and this times the best perturbed hypothesis's
     "max_offset_px": 3.0,  # agreement: median shift within this many map px
@@ -197,6 +197,7 @@ def run_check(
     except InputError:
         return {**base, "reason": "the footprint does not overlap the elevation"}
     rec = check(q_u8, np.asarray(H, float), elev, c)
-    log.info("lidar check (%s): %s, offset %s map px, ratio %s", c["layer"], rec["outcome"],
-             rec.get("offset_map_px"), rec.get("peak_ratio"))  # fmt: skip
+    log.info("lidar check (%s): %s, coherent %.3f (x%.1f the perturbed), offset %.2f map px",
+             c["layer"], rec["outcome"], rec.get("coherent", 0.0), rec.get("gain", 0.0),
+             rec.get("offset_map_px") or 0.0)  # fmt: skip
     return {"mode": c["mode"], **rec}
