@@ -81,6 +81,18 @@ def test_no_elevation_is_skipped(scene, tmp_path):
     assert lc.run_check(q, None, str(tmp_path / "dsm.vrt"), {}) is None
 
 
+def test_reject_mode_vetoes_only_a_disagreeing_elevation():
+    fused = {"status": "registered", "homography": np.eye(3).tolist()}
+    for mode, outcome, status in (("reject", "disagrees", "not_found"),
+                                  ("reject", "inconclusive", "registered"),
+                                  ("reject", "skipped", "registered"),
+                                  ("record", "disagrees", "registered")):  # fmt: skip
+        out = lc.veto(fused, {"mode": mode, "outcome": outcome})
+        assert out["status"] == status, (mode, outcome)
+        assert (out["homography"] is None) == (status == "not_found")
+    assert lc.veto(fused, None) is fused
+
+
 def test_bad_config_is_a_clear_error():
     with pytest.raises(ValueError, match="lidar_check.mode"):
         lc.lidar_conf({"lidar_check": {"mode": "strict"}})

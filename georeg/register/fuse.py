@@ -381,10 +381,8 @@ def run_fuse_parts(
     lidar = lidar_check.run_check(u8[0], H, dsm, reg_conf)
     if lidar is not None:
         timings["lidar_check"] = time.perf_counter() - t1
-        if lidar["mode"] == "reject" and lidar["outcome"] == "disagrees":
-            fused = {**fused, "status": "not_found", "homography": None,
-                     "reason": "the elevation disagrees with the registration (lidar_check)"}  # fmt: skip
-            H = None
+        fused = lidar_check.veto(fused, lidar)
+        H = None if fused.get("homography") is None else H
     t1 = time.perf_counter()
     geo = write_geolocation(out_geoloc, H, w, h, dsm, source.crs_wkt)
     timings["geolocation"] = time.perf_counter() - t1

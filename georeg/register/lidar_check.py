@@ -201,3 +201,11 @@ def run_check(
              c["layer"], rec["outcome"], rec.get("coherent", 0.0), rec.get("gain", 0.0),
              rec.get("offset_map_px") or 0.0)  # fmt: skip
     return {"mode": c["mode"], **rec}
+
+
+def veto(fused: dict[str, Any], rec: dict[str, Any] | None) -> dict[str, Any]:
+    """The fused result, turned ``not_found`` when ``mode: reject`` and the elevation disagrees."""
+    if not rec or rec.get("mode") != "reject" or rec.get("outcome") != "disagrees":
+        return fused
+    why = "the elevation disagrees with the registration (lidar_check)"
+    return {**fused, "status": "not_found", "homography": None, "reason": why}
