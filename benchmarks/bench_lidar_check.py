@@ -28,7 +28,7 @@ sys.path.insert(0, str(ROOT))
 
 from georeg.register import lidar_check as lc  # noqa: E402
 from georeg.register.geolocation import apply_h  # noqa: E402
-from georeg.register.refine import MapImage, read_map_gray  # noqa: E402
+from georeg.register.refine import MapImage  # noqa: E402
 
 AUTZEN = ROOT.parent / "shared" / "data" / "autzen"
 
@@ -95,14 +95,9 @@ def demo(layers: list[str], conf: dict) -> None:
 
 
 def _check(q: np.ndarray, H: np.ndarray, path: str, c: dict) -> dict:
-    h, w = q.shape
-    m = 0.05 * max(h, w) + 2
-    u, v = np.meshgrid(np.linspace(-m, w + m, 17), np.linspace(-m, h + m, 17))
-    x, y = apply_h(H, u, v)
-    try:
-        elev = read_map_gray(path, x, y, pad=2.0)
-    except Exception as exc:  # noqa: BLE001 - a wrong candidate may leave the map
-        return {"outcome": "skipped", "reason": str(exc)[:60]}
+    elev = lc.read_elevation(path, q.shape, H, c)
+    if elev is None:  # a wrong candidate may leave the map
+        return {"outcome": "skipped", "reason": "the footprint does not overlap the elevation"}
     return lc.check(q, H, elev, c)
 
 

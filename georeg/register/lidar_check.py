@@ -44,7 +44,7 @@ from georeg.register.refine import MapImage, cfog, grid_points, measure_shifts
 log = logging.getLogger(__name__)
 
 DEFAULTS: dict[str, Any] = {
-    "mode": "record",  # off | record (registration.json only) | reject (not agreeing -> not_found)
+    "mode": "record",  # off | record (registration.json only) | reject (disagrees -> not_found)
     "layer": "dsm",  # dsm | ndsm: the elevation layer whose edges are matched
     "max_side": 400,  # query px across after shrinking (resolution of the check)
     "grid_step_px": 16,  # tie-point grid step (shrunk px)
@@ -174,13 +174,32 @@ def elevation_path(dsm: str | None, layer: str) -> str | None:
     return str(q) if q.exists() else None
 
 
+def read_elevation(
+    path: str, shape: tuple[int, ...], H: np.ndarray, conf: dict[str, Any] | None = None
+) -> MapImage | None:
+    """The elevation raster around the footprint of a query of ``shape`` (rows, cols) at H,
+    grown by what the perturbed hypotheses and the tie-point search reach; None when the
+    footprint misses the raster."""
+    from georeg.io.errors import InputError
+    from georeg.register.refine import read_map_gray
+
+    c = {**DEFAULTS, **(conf or {})}
+    h, w = shape[-2:]
+    s = min(1.0, float(c["max_side"]) / max(h, w))
+    reach = (float(c["null_shift"]) + 1.0) * float(c["search_px"]) + float(c["window_px"]) / 2
+    m = reach / s + 2.0  # query px
+    u, v = np.meshgrid(np.linspace(-m, w + m, 17), np.linspace(-m, h + m, 17))
+    x, y = apply_h(np.asarray(H, float), u, v)
+    try:
+        return read_map_gray(path, x, y, pad=2.0)
+    except InputError:
+        return None
+
+
 def run_check(
     q_u8: np.ndarray, H: np.ndarray | None, dsm: str | None, reg_conf: dict[str, Any] | None
 ) -> dict[str, Any] | None:
     """The check of a fused registration in the workflow; None when ``mode: off`` or no H."""
-    from georeg.io.errors import InputError
-    from georeg.register.refine import read_map_gray
-
     c = lidar_conf(reg_conf)
     if c["mode"] == "off" or H is None:
         return None
@@ -188,13 +207,8 @@ def run_check(
     base = {"mode": c["mode"], "layer": c["layer"], "outcome": "skipped"}
     if path is None:
         return {**base, "reason": "no elevation layer"}
-    h, w = q_u8.shape
-    m = 0.05 * max(h, w) + 2.0
-    u, v = np.meshgrid(np.linspace(-m, w + m, 17), np.linspace(-m, h + m, 17))
-    x, y = apply_h(np.asarray(H, float), u, v)
-    try:
-        elev = read_map_gray(path, x, y, pad=2.0)
-    except InputError:
+    elev = read_elevation(path, q_u8.shape, H, c)
+    if elev is None:
         return {**base, "reason": "the footprint does not overlap the elevation"}
     rec = check(q_u8, np.asarray(H, float), elev, c)
     log.info("lidar check (%s): %s, coherent %.3f (x%.1f the perturbed), offset %.2f map px",
