@@ -158,6 +158,9 @@ def test_map_without_elevation_registers_and_says_what_lacks_heights(runs):
     assert grid["visible"]["bands"] == [2, 3, 4]
     ev = _registered_px(run, "demo")
     assert ev["outcome"] == "success" and ev["error"]["px"]["median"] < 1.0, ev["error"]
+    # no elevation: the LiDAR check is skipped, the registration is the one without it
+    reg = json.loads((run / "results/queries/demo/registration.json").read_text())
+    assert reg["lidar_check"]["outcome"] == "skipped", reg["lidar_check"]
     prod = json.loads((run / "results/products/demo/products.json").read_text())
     assert prod["heights"]["available"] is False
     assert set(prod["skipped"]) >= {"segmentation", "points_spectra", "elevation heights"}

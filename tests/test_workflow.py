@@ -65,6 +65,9 @@ def test_demo_query_registered_to_a_pixel(demo_run):
     assert reg["evaluation"]["m"]["median"] == pytest.approx(np.median(err), rel=1e-3)
     assert reg["refine"]["model"] != "homography"
     assert np.median(err) < stats["m"]["median"]
+    # the map has LiDAR: the fused registration was checked against the DSM and agrees with it
+    assert reg["lidar_check"]["mode"] == "record"
+    assert reg["lidar_check"]["outcome"] == "agrees", reg["lidar_check"]
 
 
 @pytest.mark.slow

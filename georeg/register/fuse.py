@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from georeg.register import matching
+from georeg.register import lidar_check, matching
 from georeg.register.search import (
     MapSource,
     QueryFeatures,
@@ -378,6 +378,12 @@ def run_fuse_parts(
     timings["fuse_match"] = time.perf_counter() - t1
     H = None if fused.get("homography") is None else np.array(fused["homography"])
     t1 = time.perf_counter()
+    lidar = lidar_check.run_check(u8[0], H, dsm, reg_conf)
+    if lidar is not None:
+        timings["lidar_check"] = time.perf_counter() - t1
+        fused = lidar_check.veto(fused, lidar)
+        H = None if fused.get("homography") is None else H
+    t1 = time.perf_counter()
     geo = write_geolocation(out_geoloc, H, w, h, dsm, source.crs_wkt)
     timings["geolocation"] = time.perf_counter() - t1
     map_px = _map_px(grid_path) or source.gsd_m
@@ -428,6 +434,8 @@ def run_fuse_parts(
     }
     if fused["status"] != "registered":
         reg["reason"] = fused.get("reason")
+    if lidar is not None:
+        reg["lidar_check"] = lidar
     if truth:
         t1 = time.perf_counter()
         reg["evaluation"] = evaluate(H, truth, map_px)
