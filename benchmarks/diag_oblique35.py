@@ -15,6 +15,10 @@ frames' poses.json is not needed) and prints, for a frame:
 
     python benchmarks/diag_oblique35.py cfog [--frame oblique35_100.png] [--results results]
     python benchmarks/diag_oblique35.py mi [--frame outside.png] [--votes 2] [--basin]
+    python benchmarks/diag_oblique35.py localize [--conf JSON]
+
+``localize``: ``localize_frame`` (defaults, this checkout's code) on the 4 demo frames, with the
+errors, the winning path, the intensity search's record and the seconds.
 """
 
 from __future__ import annotations
@@ -75,7 +79,7 @@ class Probe:
         self.K, dist = camera_matrix(t["intrinsics"], w, h)
         self.gray = cv2.cvtColor(cv2.undistort(rgb, self.K, dist), cv2.COLOR_RGB2GRAY)
         self.truth = (self.cam(np.array(t["R_world_to_cam"]), np.array(t["camera_center_xyz"]))
-                      if t.get("camera_center_xyz") and not t["view"].get("outside") else None)  # fmt: skip
+                      if t.get("status") == "registered" else None)  # fmt: skip
         t0 = time.perf_counter()
         co = coarse_locate(self.gray, self.K, self.ms.coarse_index, {}, self.ms.dense)
         self.votes = co.hypotheses
@@ -126,9 +130,27 @@ class Probe:
                 f"second ratio {d.second_ratio:.3f}")  # fmt: skip
 
 
+def localize_demo(results: Path, conf: dict) -> None:
+    from georeg.frames.localize import localize_frame
+
+    for t in json.loads((results / "demo/frames/truth.json").read_text()):
+        ms = MapSources(results / "index/map", results / "map/mosaic/ortho.vrt", results / "map/mosaic/dsm.vrt")
+        t0 = time.perf_counter()
+        rec, _ = localize_frame(str(results / "demo/frames" / t["image"]), t["intrinsics"], ms, conf)
+        s = f"{t['image']}: {rec['status']} (expected {t['status']}), path {rec.get('path')}"
+        if rec["status"] == "registered" and t["status"] == "registered":
+            C, Ct = np.array(rec["camera_center_xyz"]), np.array(t["camera_center_xyz"])
+            s += (f", h {np.linalg.norm(C[:2] - Ct[:2]):.2f} v {abs(C[2] - Ct[2]):.2f} m, "
+                  f"{rot_err(np.array(rec['R_world_to_cam']), np.array(t['R_world_to_cam'])):.2f} deg")  # fmt: skip
+        print(f"{s}, {time.perf_counter() - t0:.1f} s, stages {rec.get('timings_s')}")
+        for sa in rec.get("search_attempts") or []:
+            print("  search:", json.dumps(sa, default=float))
+
+
 def main(argv: list[str]) -> None:
     ap = argparse.ArgumentParser(prog="diag_oblique35.py")
-    ap.add_argument("probe", choices=["cfog", "mi"])
+    ap.add_argument("probe", choices=["cfog", "mi", "localize"])
+    ap.add_argument("--conf", type=json.loads, default=None, help="localize: frame_loc overrides")
     ap.add_argument("--frame", default="oblique35_100.png")
     ap.add_argument("--results", type=Path, default=REPO / "results")
     ap.add_argument("--votes", type=int, default=1, help="best nadir votes probed")
@@ -136,6 +158,9 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--all-rotations", action="store_true")
     ap.add_argument("--basin", action="store_true", help="mi: also from the truth's rotation, moved")
     a = ap.parse_args(argv)
+    if a.probe == "localize":
+        localize_demo(a.results, a.conf or {})
+        return
     p = Probe(a.results, a.frame)
     if a.probe == "cfog":
         search = dense.dense_search if a.all_rotations else restricted_search(np.arange(-15, 16, 3.0))

@@ -77,3 +77,25 @@ def test_other_place_or_wrong_start_is_refused(scene, frame, shift):
     print(json.dumps(sr.info, default=float))
     assert sr.cam is None
     assert max(c["refined_similarity"] for c in sr.info["candidates"]) < sr.info["accept_similarity"]
+
+
+def test_localize_frame_records_the_search(small_demo_map, scene):
+    """Through ``localize_frame``, every feature path refused (``min_inliers`` out of reach): the
+    low oblique frame is registered by the search from the coarse start, near the truth, and the
+    record names the path, its similarity and bound, and the attempt."""
+    from georeg.demo.frames import CAMERA
+    from georeg.frames.localize import localize_frame
+
+    tmp = small_demo_map[0]
+    maps, _, cam_t = scene
+    cam = {k: CAMERA[k] for k in ("fx", "fy", "cx", "cy", "dist")}
+    rec, _ = localize_frame(str(tmp / "frames_search" / "oblique35_100.png"), cam, maps,
+                            {"min_inliers": 100_000, "refine": {"enabled": False}})  # fmt: skip
+    print(rec.get("path"), rec.get("verification"), json.dumps(rec.get("search_attempts"), default=float))
+    assert rec["status"] == "registered", rec.get("reason")
+    assert rec["path"].startswith("intensity search")
+    assert np.linalg.norm(np.array(rec["camera_center_xyz"]) - cam_t.C) < 3.0
+    v = rec["verification"]
+    assert v["accepted_by"] == "intensity search" and v["similarity"] >= v["similarity_bound"]
+    assert rec["search_attempts"][-1]["similarity"] == v["similarity"]
+    assert rec["reprojection_px"] is None  # no PnP inliers behind this pose
