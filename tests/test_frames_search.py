@@ -56,13 +56,16 @@ def test_low_oblique_frame_found_from_a_coarse_like_start(scene):
 
     maps, grays, cam_t = scene
     cam0 = _start(cam_t, -5.0, 2.0, 22.0, -14.0)  # like the 2048 m scene's vote: 36 m, 5 deg
-    cloud = maps.cloud_around(cam0, {**DEFAULTS, "cloud_margin_m": 150.0})
-    sr = search_pose(grays["oblique35_100"], cam0, cloud)
+    cloud_at = lambda cm: maps.cloud_around(cm, {**DEFAULTS, "cloud_margin_m": 150.0})  # noqa: E731
+    sr = search_pose(grays["oblique35_100"], cam0, cloud_at(cam0), None, cloud_at)
     print(json.dumps(sr.info, default=float))
     assert sr.cam is not None, sr.info.get("reason")
     err_m, err_deg = np.linalg.norm(sr.cam.C - cam_t.C), _rot_err(sr.cam.R, cam_t.R)
     print(f"error {err_m:.2f} m, {err_deg:.2f} deg")
     assert err_m < 3.0 and err_deg < 1.5
+    assert sr.info["similarity"] >= 1.5 * max(sr.info["decoy_similarity"])  # its own chance level
+    # without decoy starts the frame's chance level is unknown: refused
+    assert search_pose(grays["oblique35_100"], cam0, cloud_at(cam0)).cam is None
 
 
 @pytest.mark.parametrize("frame,shift", [("outside", (22.0, -14.0)), ("oblique35_100", (-180.0, 150.0))])
@@ -72,11 +75,10 @@ def test_other_place_or_wrong_start_is_refused(scene, frame, shift):
 
     maps, grays, cam_t = scene
     cam0 = _start(cam_t, -5.0, 2.0, *shift)
-    cloud = maps.cloud_around(cam0, {**DEFAULTS, "cloud_margin_m": 150.0})
-    sr = search_pose(grays[frame], cam0, cloud)
+    cloud_at = lambda cm: maps.cloud_around(cm, {**DEFAULTS, "cloud_margin_m": 150.0})  # noqa: E731
+    sr = search_pose(grays[frame], cam0, cloud_at(cam0), None, cloud_at)
     print(json.dumps(sr.info, default=float))
     assert sr.cam is None
-    assert max(c["refined_similarity"] for c in sr.info["candidates"]) < sr.info["accept_similarity"]
 
 
 def test_localize_frame_records_the_search(small_demo_map, scene):
@@ -97,5 +99,6 @@ def test_localize_frame_records_the_search(small_demo_map, scene):
     assert np.linalg.norm(np.array(rec["camera_center_xyz"]) - cam_t.C) < 3.0
     v = rec["verification"]
     assert v["accepted_by"] == "intensity search" and v["similarity"] >= v["similarity_bound"]
+    assert v["similarity"] >= 1.5 * max(rec["search_attempts"][-1]["decoy_similarity"])
     assert rec["search_attempts"][-1]["similarity"] == v["similarity"]
     assert rec["reprojection_px"] is None  # no PnP inliers behind this pose

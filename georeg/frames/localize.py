@@ -529,13 +529,15 @@ def localize_image(
         for R0, C0, how in starts[: int(sconf["votes"])]:
             cam0 = cam_of(R0, C0)
             scloud = maps.cloud_around(cam0, {**c, "cloud_margin_m": float(sconf["cloud_margin_m"])})
-            sr = search_pose(gray, cam0, scloud, sconf)
+            sr = search_pose(gray, cam0, scloud, sconf, lambda cm: maps.cloud_around(
+                cm, {**c, "cloud_margin_m": float(sconf["cloud_margin_m"])}))  # decoys' maps
             rec.setdefault("search_attempts", []).append({"start": how, **sr.info})
             if sr.cam is not None:
                 mt, tol = window_of(sr.cam)  # the feature score, recorded (not what accepts it)
                 v = {**verify(mt, sr.cam, tol), "accepted_by": "intensity search",
                      "similarity": sr.info["similarity"],
-                     "similarity_bound": float(sconf["accept_similarity"])}  # fmt: skip
+                     "similarity_bound": max(float(sconf["accept_similarity"]), float(sconf["decoy_ratio"])
+                                             * max(sr.info["decoy_similarity"]))}  # fmt: skip
                 scored.insert(0, (f"intensity search ({how})", sr.cam, PnPResult(True, sr.cam.R, sr.cam.C), v))
                 cloud, cloud_at = scloud, C0
                 break

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -45,7 +46,9 @@ DEFAULTS: dict[str, Any] = {
     "candidates": 2,  # best grid cells (>= separation_m apart) refined
     "separation_m": 10.0,
     "refine": {"trans_step_m": 1.0, "rot_step_deg": 0.5},  # georeg.frames.refine overrides
-    "accept_similarity": 0.25,  # refined NMI + GC needed (wrong places: <= 0.19 measured)
+    "accept_similarity": 0.25,  # refined NMI + GC needed (wrong places: <= 0.27 measured) ...
+    "decoys_m": [[250.0, 0.0], [-250.0, 0.0]],  # ... and the same search from starts moved by these
+    "decoy_ratio": 1.5,  # ... must stay below 1 / decoy_ratio of it (the frame's own chance level)
     "cloud_margin_m": 150.0,
     "seed": 0,
 }
@@ -112,10 +115,13 @@ def grid_scores(gray: np.ndarray, cam0: PinholeCamera, cloud: PointCloud,
     return out[np.argsort(-out[:, 0], kind="stable")]
 
 
-def search_pose(gray: np.ndarray, cam0: PinholeCamera, cloud: PointCloud,
-                conf: dict | None = None) -> SearchResult:  # fmt: skip
+def search_pose(gray: np.ndarray, cam0: PinholeCamera, cloud: PointCloud, conf: dict | None = None,
+                cloud_at: Callable[[PinholeCamera], PointCloud] | None = None) -> SearchResult:  # fmt: skip
     """Grid search around ``cam0``, the best ``candidates`` cells refined (NMI + GC); the best
-    refined pose is accepted when its similarity reaches ``accept_similarity``."""
+    refined pose is accepted when its similarity reaches ``accept_similarity`` and ``decoy_ratio``
+    x the best similarity the same search reaches from the decoy starts (``cam0`` moved by
+    ``decoys_m``, their map read by ``cloud_at``): how similar this frame gets to a wrong place
+    after the same optimisation. No decoy evaluated (no ``cloud_at``, the map empty there): refused."""
     c = {**DEFAULTS, **(conf or {})}
     t0 = time.perf_counter()
     g = grid_scores(gray, cam0, cloud, c)
@@ -139,12 +145,26 @@ def search_pose(gray: np.ndarray, cam0: PinholeCamera, cloud: PointCloud,
         ref = refine_pose(gray, cam1, cloud, c["refine"])
         sim = -float(ref.info["octaves"][-1]["cost_end"]) if ref.info["octaves"] else 0.0
         tried.append({"grid_score": float(row[0]), "pitch_deg": float(row[1]), "heading_deg": float(row[2]),
-                      "shift_m": [float(row[3]), float(row[4])], "refined_similarity": sim})  # fmt: skip
+                      "shift_m": [float(row[3]), float(row[4])], "refined_similarity": sim,
+                      "refined_center_xyz": [float(v) for v in ref.C]})  # fmt: skip
         if best is None or sim > best[0]:
             best = (sim, cam1.with_pose(ref.R, ref.C))
-    info.update(candidates=tried, seconds=time.perf_counter() - t0)
-    if best is not None and best[0] >= float(c["accept_similarity"]):
+    info["candidates"] = tried
+    if best is None or best[0] < float(c["accept_similarity"]):
+        info.update(reason=f"best refined similarity {best[0]:.3f} < {float(c['accept_similarity'])}",
+                    seconds=time.perf_counter() - t0)  # fmt: skip
+        return SearchResult(None, info)
+    decoys = []
+    for dx, dy in c["decoys_m"] if cloud_at is not None else []:
+        cam_d = moved(cam0, 0.0, 0.0, float(dx), float(dy))
+        d = search_pose(gray, cam_d, cloud_at(cam_d), {**c, "accept_similarity": -np.inf, "decoys_m": []})
+        if d.info.get("candidates"):  # the map renders there
+            decoys.append(max(t["refined_similarity"] for t in d.info["candidates"]))
+    info.update(decoy_similarity=decoys, seconds=time.perf_counter() - t0)
+    bound = float(c["decoy_ratio"]) * max(decoys) if decoys else np.inf
+    if best[0] >= bound:
         info["similarity"] = best[0]
         return SearchResult(best[1], info)
-    info["reason"] = f"best refined similarity {best[0]:.3f} < {float(c['accept_similarity'])}"
+    info["reason"] = (f"refined similarity {best[0]:.3f} < {float(c['decoy_ratio'])} x the decoys' "
+                      f"{max(decoys):.3f}" if decoys else "no decoy start evaluated")  # fmt: skip
     return SearchResult(None, info)
