@@ -7,8 +7,10 @@ silhouette, the edge of a lot, a kerb. This step compares the frame with the map
 by the same similarity as the intensity refinement (``georeg.frames.refine``: normalised mutual
 information + gradient correlation), over a grid of poses around a coarse hypothesis (a nadir
 vote of ``georeg.frames.coarse``), then refines the best cells and accepts a pose only when its
-refined similarity clears a bound measured against wrong places (the ``outside`` demo frame and
-the other votes of the same frame).
+refined similarity clears a fixed bound (measured against wrong places) and, because the
+similarity's scale depends on the frame (a textured nadir frame reaches at a wrong place what a
+low oblique one reaches at its own), 1.5 x the best similarity the same search reaches from decoy
+starts 250 m away: the frame's own chance level after the same optimisation.
 
 The grid is cheap because the map is rendered once: at the hypothesis, on a canvas ``canvas``
 times the frame (low resolution, ``scale``), its visible pixels become 3-D points carrying the
