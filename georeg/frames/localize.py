@@ -5,7 +5,9 @@ Per frame: read (EXIF orientation applied), reduced to the pyramid level below
 against the map (the whole small map, else around the coarse location of ``frame_coarse``),
 verified; render-match-PnP (``frame_pnp``) and the intensity refinement (``frame_refine``) only
 when that pose verifies weak (``adaptive``) or there is none; the best verified hypothesis wins;
-outputs (``frame_outputs``). A frame whose hypotheses do not reach the bounds is ``not_found``
+when none verifies, the intensity pose search around the best coarse vote (``frames.search``,
+accepted by its own similarity bound; ``search_attempts`` in the record); outputs
+(``frame_outputs``). A frame whose hypotheses do not reach the bounds is ``not_found``
 (never an error).
 Unknown intrinsics (``camera: null``): the EXIF focal length of the file when it has one
 (``frame_exif``: 35 mm equivalent, focal length and focal-plane resolution, or focal length and
@@ -51,7 +53,7 @@ from georeg.frames.outputs import (
     write_png,
     write_poses,
 )
-from georeg.frames.pnp import register_by_rendering
+from georeg.frames.pnp import PnPResult, register_by_rendering
 from georeg.frames.render import (
     PinholeCamera,
     PointCloud,
@@ -60,6 +62,8 @@ from georeg.frames.render import (
     read_laz_cloud,
     render,
 )
+from georeg.frames.search import DEFAULTS as SEARCH_DEFAULTS
+from georeg.frames.search import search_pose
 from georeg.io.errors import InputError
 from georeg.io.video import frame_images, read_frame
 
@@ -88,6 +92,7 @@ DEFAULTS: dict[str, Any] = {
     "overlay_alpha": 0.5,
     "exif_focal_refine": True,  # an EXIF focal refit on the best pose's guided inliers (kept if better)
     "max_frame_mpx": 2.0,  # a larger frame is localised on its pyramid level (halvings) below this
+    "search": {},  # overrides of georeg.frames.search.DEFAULTS (last resort: intensity pose search)
 }
 
 
@@ -528,22 +533,42 @@ def localize_image(
         scored.append((f"{p} + intensity refinement", cam_r, res, v))
         scored.sort(key=lambda t: -t[3]["score"])  # stable: a tie keeps the unrefined pose
         rec["refine"] = ref.info
+    # 4. nothing verified: the intensity pose search around the coarse votes (known camera)
+    sconf = {**SEARCH_DEFAULTS, **(c.get("search") or {})}
+    if camera and sconf["enabled"] and not (scored and scored[0][3]["score"] >= min_inl):
+        t6 = time.perf_counter()
+        for R0, C0, how in starts[: int(sconf["votes"])]:
+            cam0 = cam_of(R0, C0)
+            scloud = maps.cloud_around(cam0, {**c, "cloud_margin_m": float(sconf["cloud_margin_m"])})
+            sr = search_pose(gray, cam0, scloud, sconf, lambda cm: maps.cloud_around(
+                cm, {**c, "cloud_margin_m": float(sconf["cloud_margin_m"])}))  # decoys' maps
+            rec.setdefault("search_attempts", []).append({"start": how, **sr.info})
+            if sr.cam is not None:
+                mt, tol = window_of(sr.cam)  # the feature score, recorded (not what accepts it)
+                v = {**verify(mt, sr.cam, tol), "accepted_by": "intensity search",
+                     "similarity": sr.info["similarity"],
+                     "similarity_bound": max(float(sconf["accept_similarity"]), float(sconf["decoy_ratio"])
+                                             * max(sr.info["decoy_similarity"]))}  # fmt: skip
+                scored.insert(0, (f"intensity search ({how})", sr.cam, PnPResult(True, sr.cam.R, sr.cam.C), v))
+                cloud, cloud_at = scloud, C0
+                break
+        timings["search_s"] = time.perf_counter() - t6
     rec["verification"] = {"candidates": [{"path": p, **v} for p, _, _, v in scored]}
     final_render = None
-    if scored and scored[0][3]["score"] >= min_inl:
+    if scored and (scored[0][3]["score"] >= min_inl or scored[0][3].get("accepted_by")):
         p, cam, res, v = scored[0]
         rec["path"] = p
         rec["verification"].update(v)
         base = next(cm for pp, cm, _, _ in scored if pp == p.split(" + ")[0])
         rec["pnp"] = {**_cam_record(base), "inliers": res.inliers,
-                      "reprojection_px": res.reprojection_px}  # fmt: skip
+                      "reprojection_px": res.reprojection_px if res.inliers else None}  # fmt: skip
         if cam.fx != K[0, 0]:
             how = ("exif, refined on the PnP inliers" if focal_note == "exif" else
                    "estimated (focal search, then refined in PnP)")  # fmt: skip
             rec["intrinsics"].update(fx=float(cam.fx), fy=float(cam.fy), source=how)
         z_med = float(np.median(res.inlier_xyz[:, 2])) if res.inlier_xyz is not None else maps.ground_z(cam.C)
         rec.update(status="registered", **_cam_record(cam), inliers=int(res.inliers),
-                   reprojection_px=float(res.reprojection_px),
+                   reprojection_px=float(res.reprojection_px) if res.inliers else None,
                    footprint_xy=footprint_xy(cam, z_med).tolist())  # fmt: skip
         rec.pop("reason", None)
         t5 = time.perf_counter()

@@ -184,12 +184,14 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
     order = _anchor_order(n_obs, int(c["anchor_tries"]))
     anchors, anchor_recs = [], []
     single: dict[str, dict] = {}  # keyframe name -> its single-frame record
+    # no intensity pose search for anchors (15-45 s a try, a looser pose): the next keyframe instead
+    a_loc = {**frame_loc, "search": {**(frame_loc.get("search") or {}), "enabled": False}}
     for j in order:
         if len(anchors) >= int(c["anchors"]):
             break
         nm = model.names[j]
         rgb = cv2.cvtColor(cv2.imread(str(kf_dir / nm)), cv2.COLOR_BGR2RGB)
-        rec, _ = localize_image(rgb, nm, cam_known, maps, frame_loc)
+        rec, _ = localize_image(rgb, nm, cam_known, maps, a_loc)
         anchor_recs.append({k: rec.get(k) for k in ("image", "status", "inliers", "reprojection_px",
                                                      "camera_center_xyz", "reason", "timings_s")})  # fmt: skip
         single[nm] = rec
