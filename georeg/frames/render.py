@@ -168,33 +168,29 @@ def render(
     row = np.rint(uv[idx_pt, 1]).astype(np.int64)
     zz = z[idx_pt].astype(np.float32)
     hh = half[idx_pt]
-    pix_all, z_all, src_all = [], [], []
+    # z-buffer: every pixel keeps the smallest depth rank among the splats that cover it
+    # (np.minimum.at over ranks: no sort of the splat samples, ties to the lower point index)
+    n = len(idx_pt)
+    by_z = np.argsort(zz, kind="stable")
+    rank = np.empty(n, np.int64)
+    rank[by_z] = np.arange(n)
+    best = np.full(H * W, n, np.int64)
     for h in np.unique(hh):
         sel = np.flatnonzero(hh == h)
-        offs = np.arange(-h, h + 1)
-        dc, dr = np.meshgrid(offs, offs)
-        cc = (col[sel, None] + dc.ravel()[None, :]).ravel()
-        rr = (row[sel, None] + dr.ravel()[None, :]).ravel()
-        src = np.repeat(sel, dc.size)
-        ok = (cc >= 0) & (cc < W) & (rr >= 0) & (rr < H)
-        pix_all.append(rr[ok] * W + cc[ok])
-        z_all.append(zz[src[ok]])
-        src_all.append(src[ok])
+        for dr in range(-h, h + 1):  # one splat offset at a time: memory ~ the visible points
+            rr = row[sel] + dr
+            okr = (rr >= 0) & (rr < H)
+            for dc in range(-h, h + 1):
+                cc = col[sel] + dc
+                ok = okr & (cc >= 0) & (cc < W)
+                np.minimum.at(best, rr[ok] * W + cc[ok], rank[sel[ok]])
     image = np.full((H, W, 3), background, np.uint8)
     depth = np.full((H, W), np.inf, np.float32)
-    if pix_all:
-        pix = np.concatenate(pix_all)
-        zs = np.concatenate(z_all)
-        src = np.concatenate(src_all)
-        order = np.lexsort((zs, pix))  # by pixel, then nearest first
-        pix_s = pix[order]
-        first = np.ones(pix_s.size, bool)
-        first[1:] = pix_s[1:] != pix_s[:-1]
-        win = order[first]
-        flat_d = depth.reshape(-1)
-        flat_i = image.reshape(-1, 3)
-        flat_d[pix[win]] = zs[win]
-        flat_i[pix[win]] = cloud.rgb[idx_pt[src[win]]]
+    hit = np.flatnonzero(best < n)
+    if hit.size:
+        win = by_z[best[hit]]
+        depth.reshape(-1)[hit] = zz[win]
+        image.reshape(-1, 3)[hit] = cloud.rgb[idx_pt[win]]
     return Render(image, depth, cam)
 
 
