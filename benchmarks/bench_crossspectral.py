@@ -6,7 +6,8 @@
     nice -n 5 python benchmarks/bench_crossspectral.py --set small --methods wf_nosmall,wf_small
 
 ``--set small``: the small-query development subset (45-100 px crops of the TUNING scenes only,
-own seed, with their unrelated pairs; docs/BENCHMARKS.md "Small queries"). The ``wf_*`` methods
+own seed, with their unrelated pairs; docs/BENCHMARKS.md "Small queries"); ``--set tiny``: the
+same with 40-80 px crops and another seed (5 per scene). The ``wf_*`` methods
 pass the workflow's orthophoto window reader on the plain map array (``plain_window_reader``), so
 the small-query fallback (``register.small``, on by default) runs as in the workflow.
 
@@ -304,8 +305,15 @@ METHODS: dict[str, dict[str, Any]] = {
     # fewer than 8 inliers: the least squares of every search fits a similarity
     # (register.ransac.similarity_below)
     "wf_sim8": {"pipeline": {"ransac": {"similarity_below": 8}}, "bands": "auto"},
+    "wf_sim8_refined": {"pipeline": {"ransac": {"similarity_below": 8}}, "bands": "auto",
+                        "refine": {}},  # fmt: skip
     "wf_sim8_peaks3": {"pipeline": {"ransac": {"similarity_below": 8}, "small": {"peaks": 3}},
                        "bands": "auto"},  # fmt: skip
+    # the candidate default of --set tiny (both of the above), and with the refinement stage
+    "wf_tiny": {"pipeline": {"ransac": {"similarity_below": 8}, "small": {"peaks": 3}},
+                "bands": "auto"},  # fmt: skip
+    "wf_tiny_refined": {"pipeline": {"ransac": {"similarity_below": 8}, "small": {"peaks": 3}},
+                        "bands": "auto", "refine": {}},  # fmt: skip
     "wf_small_searched": {"pipeline": {"small": {"enabled": True, "windows": "searched"}},
                           "bands": "auto"},  # fmt: skip
     # the same with the ranking before the Hough vote on plain arrays (register.index.rank:

@@ -208,7 +208,7 @@ def fit_homography(
     rounds (most rounds; stops early when two rounds agree), affine_below (with fewer inliers the
     least-squares re-estimation fits an affine map: 8 degrees of freedom from a handful of
     clustered points extrapolate badly over the footprint), similarity_below (with fewer inliers
-    still, a similarity: 4 degrees of freedom; 0 = never). Map coordinates are centred and scaled
+    still, a similarity: 4 degrees of freedom; 0 = never, the default). Map coordinates are centred and scaled
     to map feature pixels for the solver, so thresholds are in pixels and numerics stay sane.
     """
     n = len(q_xy)
