@@ -6,7 +6,8 @@
     nice -n 5 python benchmarks/bench_crossspectral.py --set small --methods wf_nosmall,wf_small
 
 ``--set small``: the small-query development subset (45-100 px crops of the TUNING scenes only,
-own seed, with their unrelated pairs; docs/BENCHMARKS.md "Small queries"). The ``wf_*`` methods
+own seed, with their unrelated pairs; docs/BENCHMARKS.md "Small queries"); ``--set tiny``: the
+same with 40-80 px crops and another seed (5 per scene). The ``wf_*`` methods
 pass the workflow's orthophoto window reader on the plain map array (``plain_window_reader``), so
 the small-query fallback (``register.small``, on by default) runs as in the workflow.
 
@@ -56,6 +57,7 @@ from georeg.index.features import detect_and_describe, merged_conf, resample  # 
 from georeg.register import acceptance, crossspectral, matching  # noqa: E402
 
 SUCCESS_PX = 5.0
+TINY_SIDES = (40, 80)  # --set tiny: query px a side, like the checking half's smallest crops
 
 
 # ----------------------------------------------------------------------------- scenes
@@ -294,6 +296,24 @@ METHODS: dict[str, dict[str, Any]] = {
     "wf_small": {"pipeline": {"small": {"enabled": True}}, "bands": "auto"},  # dense Hough windows
     "wf_small_160": {"pipeline": {"small": {"enabled": True, "max_side_px": 160}},
                      "bands": "auto"},  # fmt: skip
+    # --set tiny candidates: several CFOG peaks per window, a lower SIFT contrast threshold,
+    # more windows (register.small.peaks, .features, .max_windows)
+    "wf_peaks3": {"pipeline": {"small": {"peaks": 3}}, "bands": "auto"},
+    "wf_peaks3_ct01": {"pipeline": {"small": {"peaks": 3, "features": {
+        "max_features_per_mpx": 0, "sift": {"contrast_threshold": 0.01}}}}, "bands": "auto"},
+    "wf_peaks3_w5": {"pipeline": {"small": {"peaks": 3, "max_windows": 5}}, "bands": "auto"},
+    # fewer than 8 inliers: the least squares of every search fits a similarity
+    # (register.ransac.similarity_below)
+    "wf_sim8": {"pipeline": {"ransac": {"similarity_below": 8}}, "bands": "auto"},
+    "wf_sim8_refined": {"pipeline": {"ransac": {"similarity_below": 8}}, "bands": "auto",
+                        "refine": {}},  # fmt: skip
+    "wf_sim8_peaks3": {"pipeline": {"ransac": {"similarity_below": 8}, "small": {"peaks": 3}},
+                       "bands": "auto"},  # fmt: skip
+    # the candidate default of --set tiny (both of the above), and with the refinement stage
+    "wf_tiny": {"pipeline": {"ransac": {"similarity_below": 8}, "small": {"peaks": 3}},
+                "bands": "auto"},  # fmt: skip
+    "wf_tiny_refined": {"pipeline": {"ransac": {"similarity_below": 8}, "small": {"peaks": 3}},
+                        "bands": "auto", "refine": {}},  # fmt: skip
     "wf_small_searched": {"pipeline": {"small": {"enabled": True, "windows": "searched"}},
                           "bands": "auto"},  # fmt: skip
     # the same with the ranking before the Hough vote on plain arrays (register.index.rank:
@@ -495,9 +515,13 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
     u8 = query_stack(q, spec.get("bands", 1))
     res = register_query(u8, src, conf, q.gsd, [q.gsd / fgsd], seed, plain_window_reader(sc_map))
     split = res.get("split") or {}
-    extra: dict[str, Any] = {}
+    wins = (split.get("small") or {}).get("windows") or []
+    sw = [w.get("log10_nfa") for w in wins if w.get("log10_nfa") is not None]
+    acc = [w.get("peak") for w in wins if w.get("accepted")]
+    extra: dict[str, Any] = {"small_nfa": min(sw) if sw else None,
+                             "small_peak": acc[0] if acc else None}
     if spec.get("refine") is not None and res["status"] == "registered":
-        extra = run_refine(q, sc_map, np.array(res["homography"]), spec)
+        extra.update(run_refine(q, sc_map, np.array(res["homography"]), spec))
     return {
         **extra,
         "matches": res.get("matches") or 0,
@@ -679,19 +703,21 @@ def build_set(per_scene: int, seed: int, small: int = 1) -> tuple[list[Scene], l
     return scenes, qs + neg
 
 
-def build_small_set(per_scene: int, seed: int, sides: tuple[int, int] = (45, 100)
+def build_small_set(per_scene: int, seed: int, sides: tuple[int, int] = (45, 100),
+                    prefix: str = "small_", seed_offset: int = 500
                     ) -> tuple[list[Scene], list[Query]]:
     """The small-query development subset: ``per_scene`` crops of ``sides`` query px a side
     (same rotations, rescales and random band as the protocol) of the TUNING scenes only, drawn
-    with their own seed (``seed`` + 500), and each against the map of another tuning city."""
+    with their own seed (``seed`` + ``seed_offset``), and each against the map of another tuning
+    city. ``--set tiny`` = 40-80 px, prefix ``tiny_``, ``seed`` + 600."""
     scenes = [sc for sc in all_scenes(enmap=False) if half_of(sc.city) == "tuning"]
-    rng = np.random.default_rng(seed + 500)
+    rng = np.random.default_rng(seed + seed_offset)
     qs = []
     for sc in scenes:
         for i in range(per_scene):
             n = int(rng.integers(sides[0], sides[1] + 1))
             q = make_query(sc, rng, 100 + i, side_px=n)
-            qs.append(Query("small_" + q.name, *[getattr(q, f) for f in
+            qs.append(Query(prefix + q.name, *[getattr(q, f) for f in
                                                  ("scene", "map_scene", "bands", "gsd", "truth",
                                                   "truth_map")]))  # fmt: skip
     neg = []
@@ -732,10 +758,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--per-scene", type=int, default=3, help="crops of half the scene side")
     ap.add_argument("--small", type=int, default=1, help="smaller crops (0.3-0.45 of the side)")
     ap.add_argument("--half", choices=("tuning", "checking", "both"), default="both")
-    ap.add_argument("--set", choices=("protocol", "small"), default="protocol",
+    ap.add_argument("--set", choices=("protocol", "small", "tiny"), default="protocol",
                     help="small: the small-query development subset of the tuning cities "
-                    "(45-100 px a side, own seed; its rows are the half 'small')")  # fmt: skip
-    ap.add_argument("--small-per-scene", type=int, default=6, help="--set small: crops per scene")
+                    "(45-100 px a side, own seed; its rows are the half 'small'); tiny: the "
+                    "same with 40-80 px, another seed (rows 'tiny')")  # fmt: skip
+    ap.add_argument("--small-per-scene", type=int, default=None,
+                    help="--set small / tiny: crops per scene (default 6 / 5)")
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--out", default=str(ROOT / "results" / "benchmark" / "crossspectral.json"))
     ap.add_argument("-v", action="store_true", help="one line per query and method")
@@ -745,7 +773,9 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     cv2.setNumThreads(1)
     if a.set == "small":
-        scenes, queries = build_small_set(a.small_per_scene, a.seed)
+        scenes, queries = build_small_set(a.small_per_scene or 6, a.seed)
+    elif a.set == "tiny":
+        scenes, queries = build_small_set(a.small_per_scene or 5, a.seed, TINY_SIDES, "tiny_", 600)
     else:
         scenes, queries = build_set(a.per_scene, a.seed, a.small)
     by = {s.name: s for s in scenes}
@@ -754,7 +784,7 @@ def main(argv: list[str] | None = None) -> int:
     methods = a.methods.split(",")
     rows: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
     for qi, q in enumerate(queries):
-        half = "small" if a.set == "small" else half_of(by[q.scene].city)
+        half = a.set if a.set != "protocol" else half_of(by[q.scene].city)
         for name in methods:
             res = run_method(q, by[q.map_scene], METHODS[name], a.seed + qi)
             j = judge(q, by[q.map_scene], res)
@@ -766,7 +796,7 @@ def main(argv: list[str] | None = None) -> int:
                    "log10_nfa": res.get("log10_nfa"), "seconds": res["seconds"],
                    "dense_z": res.get("dense_z"), "dense_log10_nfa": res.get("dense_log10_nfa"),
                    "dense_ratio": res.get("dense_ratio"), "refine_model": res.get("refine_model"),
-                   "global_fit": res.get("global_fit"),
+                   "global_fit": res.get("global_fit"), "small_nfa": res.get("small_nfa"),
                    "global_fit_reason": res.get("global_fit_reason")}  # fmt: skip
             rows[name].append(rec)
             if a.v:
@@ -774,7 +804,11 @@ def main(argv: list[str] | None = None) -> int:
                      else f"{j['error_px']:.2f}/{j['p90_px']:.2f}/{j['max_px']:.2f}")  # fmt: skip
                 print(f"{half[:5]} {q.name:40s} {name:16s} {j['outcome']:12s} err {e:>12s} "
                       f"inl {res['inliers']:3d}/{res['matches']:3d} parts {res.get('parts')} "
-                      f"{res['seconds']:.2f}s", flush=True)  # fmt: skip
+                      f"{res['seconds']:.2f}s"
+                      + ("" if res.get("small_nfa") is None
+                         else f" small log10 NFA {res['small_nfa']:.1f}")
+                      + ("" if res.get("small_peak") is None
+                         else f" peak {res['small_peak']}"), flush=True)  # fmt: skip
     print(f"\n{len(queries)} queries and unrelated pairs, seed {a.seed}; halves by city: "
           f"tuning {', '.join(TUNING)}; checking {', '.join(CHECKING)}")  # fmt: skip
     print("| method | half | registered | false accepts | unrelated accepted | median err px "
@@ -783,7 +817,7 @@ def main(argv: list[str] | None = None) -> int:
     summary: dict[str, Any] = {}
     for name in methods:
         summary[name] = {}
-        for half in ("small", "tuning", "checking"):
+        for half in ("small", "tiny", "tuning", "checking"):
             sm = summarise([x for x in rows[name] if x["half"] == half])
             summary[name][half] = sm
             if not sm["positives"]:

@@ -141,3 +141,34 @@ def test_dense_search_centre_box_restricts_the_query_centre():
     r2 = dense_search(q, 1.0, m, 10.0, 96, centre_box=(30.0, 30.0, 80.0, 80.0))
     c2 = matching.apply_h(r2.S, centre)[0]
     assert 29.0 <= c2[0] <= 81.0 and 29.0 <= c2[1] <= 81.0
+
+
+def test_dense_search_further_peaks_find_a_second_copy_and_stay_apart():
+    """``dense_search(n_peaks=3)``: with the query pasted at two places of the map, the best
+    peak and the next one are the two places (both at 0 deg, within a pixel), in decreasing
+    score; every further peak is > 20 deg or > ``apart_px`` from the ones before it."""
+    import cv2
+
+    from georeg.register.dense import dense_search
+
+    rng = np.random.default_rng(1)
+    m = cv2.GaussianBlur(rng.random((220, 220)).astype(np.float32), (0, 0), 2.0)
+    m = (1 + 254 * (m - m.min()) / (m.max() - m.min())).astype(np.uint8)
+    q = m[30:90, 40:100].copy()  # true centre (69.5, 59.5)
+    m[130:190, 140:200] = q  # a second copy, centre (169.5, 159.5)
+    centre = np.array([[(q.shape[1] - 1) / 2, (q.shape[0] - 1) / 2]])
+    r = dense_search(q, 1.0, m, 10.0, 96, n_peaks=3, apart_px=8.0)
+    assert r is not None and len(r.others) == 2
+    peaks = [(r.S, r.angle_deg, r.score)] + r.others
+    places = [matching.apply_h(S, centre)[0] for S, _, _ in peaks]
+    truth = [np.array([69.5, 59.5]), np.array([169.5, 159.5])]
+    got = sorted(min(range(2), key=lambda i: np.hypot(*(p - truth[i]))) for p in places[:2])
+    assert got == [0, 1]
+    for p, (_, a, _) in zip(places[:2], peaks[:2], strict=True):
+        assert min(np.hypot(*(p - t)) for t in truth) < 1.5 and a == 0.0
+    scores = [s for _, _, s in peaks]
+    assert scores == sorted(scores, reverse=True)
+    for i in range(1, 3):
+        for j in range(i):
+            dang = abs((peaks[i][1] - peaks[j][1] + 180.0) % 360.0 - 180.0)
+            assert dang > 20.0 or np.hypot(*(places[i] - places[j])) > 8.0 - 1.5

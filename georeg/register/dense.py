@@ -35,6 +35,7 @@ class DenseResult:
     log10_nfa: float  # log10(tests) + log10 P(Z > z)
     second_ratio: float  # peak / best score at another rotation (> 20 deg away) or offset
     tests: int
+    others: list[tuple[np.ndarray, float, float]] | None = None  # further peaks: (S, angle, score)
 
 
 def _shrink(img: np.ndarray, valid: np.ndarray, f: float) -> tuple[np.ndarray, np.ndarray]:
@@ -67,11 +68,14 @@ def dense_search(
     orientations: int = 9,
     min_overlap: float = 0.9,
     centre_box: tuple[float, float, float, float] | None = None,
+    n_peaks: int = 1,
+    apart_px: float = 8.0,
 ) -> DenseResult | None:
     """Find the query (uint8, 0 = nodata; ``factor`` = query GSD / map GSD) in the map window
     ``m_u8`` (uint8, 0 = nodata) over rotations of ``step_deg``. None when nothing overlaps.
     ``centre_box`` = (col0, row0, col1, row1) in window px: only offsets that put the query's
-    centre inside it are searched."""
+    centre inside it are searched. ``n_peaks`` > 1: also the next best peaks in ``others``, each
+    more than 20 deg or ``apart_px`` window px away from every peak taken before it."""
     qv0 = q_u8 > 0
     q, qv = _shrink(q_u8, qv0, factor)
     s = min(1.0, max_side / max(q.shape))
@@ -139,11 +143,25 @@ def dense_search(
     second = float(np.max(np.where(np.isfinite(other), other, -np.inf)))
     tests = int(fin.sum())
     log_nfa = math.log10(tests) + float(norm.logsf(z)) / math.log(10.0)
-    # query px -> shrunken query -> canvas -> shrunken map (+ offset) -> map window px
-    T = np.array([[1.0, 0, dx - pd], [0, 1.0, dy - pd], [0, 0, 1]])
-    S = np.linalg.inv(_scale(s)) @ T @ mats[k] @ _scale(s) @ _scale(factor)
-    return DenseResult(S, float(angles[k]), peak, float(z), log_nfa,
-                       peak / second if second > 0 else math.inf, tests)  # fmt: skip
+
+    def to_window(k: int, dy: int, dx: int) -> np.ndarray:
+        # query px -> shrunken query -> canvas -> shrunken map (+ offset) -> map window px
+        T = np.array([[1.0, 0, dx - pd], [0, 1.0, dy - pd], [0, 0, 1]])
+        return np.linalg.inv(_scale(s)) @ T @ mats[k] @ _scale(s) @ _scale(factor)
+
+    others = []
+    rest = np.where(fin, scores, -np.inf)
+    ki, yi, xi = k, dy, dx
+    r2 = max(1.0, apart_px * s) ** 2
+    for _ in range(max(0, int(n_peaks) - 1)):
+        da = np.abs((angles - angles[ki] + 180.0) % 360.0 - 180.0) <= 20.0
+        rest[da] = np.where(((yy - yi) ** 2 + (xx - xi) ** 2 <= r2)[None], -np.inf, rest[da])
+        ki, yi, xi = np.unravel_index(int(np.argmax(rest)), rest.shape)
+        if not np.isfinite(rest[ki, yi, xi]):
+            break
+        others.append((to_window(ki, yi, xi), float(angles[ki]), float(rest[ki, yi, xi])))
+    return DenseResult(to_window(k, dy, dx), float(angles[k]), peak, float(z), log_nfa,
+                       peak / second if second > 0 else math.inf, tests, others)  # fmt: skip
 
 
 DENSE_DEFAULTS: dict[str, Any] = {

@@ -207,7 +207,8 @@ def fit_homography(
     map feature pixels), max_seconds (time bound over rounds), max_iters (per round), confidence,
     rounds (most rounds; stops early when two rounds agree), affine_below (with fewer inliers the
     least-squares re-estimation fits an affine map: 8 degrees of freedom from a handful of
-    clustered points extrapolate badly over the footprint). Map coordinates are centred and scaled
+    clustered points extrapolate badly over the footprint), similarity_below (with fewer inliers
+    still, a similarity: 4 degrees of freedom; 0 = never, the default). Map coordinates are centred and scaled
     to map feature pixels for the solver, so thresholds are in pixels and numerics stay sane.
     """
     n = len(q_xy)
@@ -262,11 +263,15 @@ def fit_homography(
     Hn = best_H
     inl = _residuals(Hn, src, dst) < thr
     affine_below = int(conf.get("affine_below", 12))
+    similarity_below = int(conf.get("similarity_below", 0))
     model = "homography"
     for _ in range(3):  # least squares on all inliers, re-evaluate the support
         if inl.sum() < 4:
             break
-        if inl.sum() < affine_below:
+        if inl.sum() < similarity_below:
+            # a handful of inliers: even an affine map's shear and anisotropy extrapolate badly
+            Hls, cand, keep = _similarity_lsq(src[inl], dst[inl]), "similarity", 0.8
+        elif inl.sum() < affine_below:
             # too few inliers to pin 8 degrees of freedom: perspective terms would extrapolate wildly
             Hls, cand, keep = _affine_lsq(src[inl], dst[inl]), "affine", 0.8
         else:
@@ -294,6 +299,17 @@ def _affine_lsq(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     A = np.c_[src.astype(np.float64), np.ones(len(src))]
     sol, *_ = np.linalg.lstsq(A, dst.astype(np.float64), rcond=None)
     return np.vstack([sol.T, [0.0, 0.0, 1.0]])
+
+
+def _similarity_lsq(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Least-squares similarity (rotation, scale, shift; no mirror) src -> dst as a 3x3 matrix:
+    x' = a x - b y + tx, y' = b x + a y + ty."""
+    x, y = src[:, 0].astype(np.float64), src[:, 1].astype(np.float64)
+    one, zero = np.ones(len(src)), np.zeros(len(src))
+    A = np.r_[np.c_[x, -y, one, zero], np.c_[y, x, zero, one]]
+    b = np.r_[dst[:, 0], dst[:, 1]].astype(np.float64)
+    (a, bb, tx, ty), *_ = np.linalg.lstsq(A, b, rcond=None)
+    return np.array([[a, -bb, tx], [bb, a, ty], [0.0, 0.0, 1.0]])
 
 
 def _residuals(Hn: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:

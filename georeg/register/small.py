@@ -37,6 +37,7 @@ SMALL_DEFAULTS: dict[str, Any] = {
     "windows": "hough",
     "step_deg": 10.0,
     "max_side": 96,
+    "peaks": 1,
     "radii_px": [8.0, 4.0],
     "ratio": 0.8,
     "inlier_px": 3.0,
@@ -137,6 +138,47 @@ def decide_small(
     return out
 
 
+def _guided_rematch(
+    H: np.ndarray,
+    q_xy: np.ndarray,
+    q_desc: np.ndarray,
+    mxy: np.ndarray,
+    mdesc: np.ndarray,
+    knn: Any,
+    g: float,
+    sc: dict[str, Any],
+    win_area: float,
+    n_rot: int,
+    n_windows: int,
+    qf: QueryFeatures,
+    q_gsd: float,
+    reg_conf: dict[str, Any],
+    seed: int,
+) -> tuple[Any, matching.HomographyFit, dict[str, Any], float] | None:
+    """The guided re-match around the similarity ``H`` (query px -> map x, y) at the radii
+    ``radii_px`` (a later radius only refines an accepted fit): (matches, fit, decision,
+    radius) of the last fit kept, or None when nothing could be fitted."""
+    best = None
+    for k, radius_px in enumerate(float(v) for v in sc["radii_px"]):
+        disc = math.pi * radius_px**2
+        gm = crossspectral.guided_matches(q_xy, q_desc, H, mxy, mdesc, radius_px * g,
+                                          float(sc["ratio"]), knn)  # fmt: skip
+        if len(gm) < 4:
+            break
+        fit = fit_similarity(gm.q_xy, gm.m_xy, g, float(sc["inlier_px"]), seed + k)
+        if fit is None:
+            break
+        n_tests = n_rot * max(1, int(math.ceil(win_area / disc))) * max(1, int(n_windows))
+        dec = decide_small(fit, disc, n_tests, qf.width, qf.height, q_gsd, gm.q_xy, reg_conf)
+        if best is not None and (not dec["accepted"] or fit.n_inliers <= best[1].n_inliers):
+            break  # a smaller radius only replaces an accepted fit by a better one
+        best = (gm, fit, dec, radius_px)
+        H = fit.H
+        if not dec["accepted"]:
+            break
+    return best
+
+
 def small_register(
     q_u8: np.ndarray,
     q_gsd: float,
@@ -175,13 +217,14 @@ def small_register(
         box = (float(cr[:, 0].min()), float(cr[:, 1].min()), float(cr[:, 0].max()),
                float(cr[:, 1].max()))  # fmt: skip
         places_px = max(1.0, (box[2] - box[0]) * (box[3] - box[1]))
+    n_peaks = int(sc.get("peaks", 1))
     r = dense_search(q0, q_gsd / win_px, win, float(sc["step_deg"]), int(sc["max_side"]),
-                     centre_box=box)  # fmt: skip
+                     centre_box=box, n_peaks=n_peaks,
+                     apart_px=float(sc["radii_px"][0]) * feature_gsd / win_px)  # fmt: skip
     if r is None:
         rec.update(reason="no overlap", seconds=time.perf_counter() - t0)
         return rec
     rec.update(angle_deg=r.angle_deg, dense_score=r.score, dense_peak_ratio=r.second_ratio)
-    H = win_to_map @ r.S
     g = float(feature_gsd)
     fconf = dense_features_conf(features_conf, sc)
     if qf is None:
@@ -196,31 +239,25 @@ def small_register(
     q_xy, q_desc, _ = crossspectral.add_polarity(qf.xy, qf.desc, qf.response)
     win_area = places_px * (win_px / g) ** 2  # where the query centre may be, feature px
     n_rot = int(round(360.0 / float(sc["step_deg"])))
+    hyps = [(r.S, r.angle_deg, r.score)] + list(r.others or [])
     best = None
-    for k, radius_px in enumerate(float(v) for v in sc["radii_px"]):
-        disc = math.pi * radius_px**2
-        gm = crossspectral.guided_matches(q_xy, q_desc, H, mxy, mdesc, radius_px * g,
-                                          float(sc["ratio"]), knn)  # fmt: skip
-        if len(gm) < 4:
-            break
-        fit = fit_similarity(gm.q_xy, gm.m_xy, g, float(sc["inlier_px"]), seed + k)
-        if fit is None:
-            break
-        n_tests = n_rot * max(1, int(math.ceil(win_area / disc))) * max(1, int(n_windows))
-        dec = decide_small(fit, disc, n_tests, qf.width, qf.height, q_gsd, gm.q_xy, reg_conf)
-        if best is not None and (not dec["accepted"] or fit.n_inliers <= best[1].n_inliers):
-            break  # a smaller radius only replaces an accepted fit by a better one
-        best = (gm, fit, dec, radius_px)
-        H = fit.H
-        if not dec["accepted"]:
-            break
+    for j, (S, angle, score) in enumerate(hyps):
+        got = _guided_rematch(win_to_map @ S, q_xy, q_desc, mxy, mdesc, knn, g, sc, win_area,
+                              n_rot, n_windows, qf, q_gsd, reg_conf, seed)  # fmt: skip
+        if got is None:
+            continue
+        if best is None or got[2]["accepted"] or got[2]["log10_nfa"] < best[2]["log10_nfa"]:
+            best = (*got, j, angle, score)
+        if got[2]["accepted"]:
+            break  # the first accepted peak, in the order of the correlation score
     if best is not None:
-        gm, fit, dec, radius_px = best
+        gm, fit, dec, radius_px, j, angle, score = best
         inl = fit.inliers
         rec.update(
             accepted=bool(dec["accepted"]), homography=fit.H.tolist(), inliers=fit.n_inliers,
             matches=len(gm), residual_px=fit.rms_px, log10_nfa=dec.get("log10_nfa"),
-            reason=dec.get("reason", ""), radius_px=radius_px,
+            reason=dec.get("reason", ""), radius_px=radius_px, peak=j, angle_deg=angle,
+            dense_score=score, peaks_tried=len(hyps),
             inlier_query_xy=gm.q_xy[inl].tolist(), inlier_map_xy=gm.m_xy[inl].tolist(),
         )  # fmt: skip
     rec["seconds"] = time.perf_counter() - t0
@@ -285,4 +322,4 @@ def small_fallback(
                               source.features_conf, seed + k, len(windows), qf, b)  # fmt: skip
 
     return first_accepted_window(windows, read_window, register, parts, full.height, "small",
-                                 ("angle_deg", "dense_score"), grow)  # fmt: skip
+                                 ("angle_deg", "dense_score", "peak"), grow)  # fmt: skip
