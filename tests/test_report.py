@@ -179,6 +179,7 @@ def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
             "acceptance": "nfa",
             "map_px_m": 1.0,
             "candidates_tried": 6,
+            "lidar_check": {"outcome": "agrees", "coherent": 0.2} if found else None,
             "parts": reg_parts,
             "fuse": {"method": "fused"} if found else {"parts_accepted": []},
             "timings_s": {
@@ -376,6 +377,7 @@ def test_summary_numbers_equal_the_json(run_dir: Path) -> None:
         assert val("error_median_m") == (err.get("m") or {}).get("median")
         assert val("error_p90_m") == (err.get("m") or {}).get("p90")
         assert val("time_s") == pytest.approx(query_seconds(reg))
+        assert val("lidar_check") == (reg.get("lidar_check") or {}).get("outcome")
     assert rows["good"]["outcome"] == "success"
     assert json.loads(rows["good"]["error_median_px"]) == pytest.approx(0.72, abs=0.01)
     assert rows["lost"]["outcome"] == "correct_not_found"

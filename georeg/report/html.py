@@ -188,6 +188,7 @@ def summary_row(name: str, reg: Mapping[str, Any], ev: Mapping[str, Any]) -> dic
         "error_max_px": px.get("max"),
         "error_median_m": m.get("median"),
         "error_p90_m": m.get("p90"),
+        "lidar_check": (reg.get("lidar_check") or {}).get("outcome"),  # fit vs the map's elevation
         "time_s": query_seconds(reg),
     }
 
@@ -224,6 +225,7 @@ def summary_table(rows: list[dict[str, Any]]) -> str:
                 cell("error_max_px", r["error_max_px"]),
                 cell("error_median_m", r["error_median_m"]),
                 cell("error_p90_m", r["error_p90_m"]),
+                cell("lidar_check", r["lidar_check"], cls=""),
                 cell("time_s", r["time_s"], 1),
             ]
         )
@@ -239,6 +241,7 @@ def summary_table(rows: list[dict[str, Any]]) -> str:
             "error max (px)",
             "error median (m)",
             "error p90 (m)",
+            "LiDAR check",
             "time (s)",
         ],
         out,
@@ -602,6 +605,7 @@ SUMMARY_COLUMNS = [
     "error_max_px",
     "error_median_m",
     "error_p90_m",
+    "lidar_check",
     "time_s",
 ]
 
