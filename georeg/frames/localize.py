@@ -537,11 +537,11 @@ def localize_image(
     sconf = {**SEARCH_DEFAULTS, **(c.get("search") or {})}
     if camera and sconf["enabled"] and not (scored and scored[0][3]["score"] >= min_inl):
         t6 = time.perf_counter()
+        cconf = {**c, "cloud_margin_m": float(sconf["cloud_margin_m"])}
         for R0, C0, how in starts[: int(sconf["votes"])]:
             cam0 = cam_of(R0, C0)
-            scloud = maps.cloud_around(cam0, {**c, "cloud_margin_m": float(sconf["cloud_margin_m"])})
-            sr = search_pose(gray, cam0, scloud, sconf, lambda cm: maps.cloud_around(
-                cm, {**c, "cloud_margin_m": float(sconf["cloud_margin_m"])}))  # decoys' maps
+            scloud = maps.cloud_around(cam0, cconf)
+            sr = search_pose(gray, cam0, scloud, sconf, lambda cm: maps.cloud_around(cm, cconf))  # + decoys' maps
             rec.setdefault("search_attempts", []).append({"start": how, **sr.info})
             if sr.cam is not None:
                 mt, tol = window_of(sr.cam)  # the feature score, recorded (not what accepts it)
