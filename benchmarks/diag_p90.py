@@ -26,15 +26,25 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 import bench_crossspectral as bc  # noqa: E402
 
 
-def run(half: str, out: str, seed: int = 11) -> None:
+def build(which: str, seed: int = 11) -> tuple[list, list]:
+    """The benchmark's query set: ``protocol`` (both halves), ``small`` or ``tiny`` (tuning
+    cities only, as ``bench_crossspectral.py --set``)."""
+    if which == "small":
+        return bc.build_small_set(6, seed)
+    if which == "tiny":
+        return bc.build_small_set(5, seed, bc.TINY_SIDES, "tiny_", 600)
+    return bc.build_set(3, seed, 1)
+
+
+def run(half: str, out: str, seed: int = 11, which: str = "protocol") -> None:
     import cv2
 
     cv2.setNumThreads(1)
-    scenes, queries = bc.build_set(3, seed, 1)
+    scenes, queries = build(which, seed)
     by = {s.name: s for s in scenes}
     recs = []
     for qi, q in enumerate(queries):
-        if q.truth is None or bc.half_of(by[q.scene].city) != half:
+        if q.truth is None or (which == "protocol" and bc.half_of(by[q.scene].city) != half):
             continue
         res = bc.run_method(q, by[q.map_scene], bc.METHODS["wf_default"], seed + qi)
         j = bc.judge(q, by[q.map_scene], res)
@@ -87,14 +97,15 @@ def st(e: np.ndarray) -> str:
     return f"{np.median(e):5.2f}/{np.percentile(e, 90):5.2f}/{e.max():5.2f}"
 
 
-def analyse(path: str, variants: list[str], a_only: tuple[str, ...] = ()) -> None:
+def analyse(path: str, variants: list[str], a_only: tuple[str, ...] = (),
+            which: str = "protocol") -> None:
     import yaml
 
     from georeg.register.geolocation import map_xy
     from georeg.register.refine import refine
 
     recs = pickle.loads(Path(path).read_bytes())
-    scenes, queries = bc.build_set(3, 11, 1)
+    scenes, queries = build(which)
     by = {s.name: s for s in scenes}
     qby = {q.name: q for q in queries}
     rconf = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["refine"]
@@ -216,6 +227,43 @@ def _same_date_to_map(city: str, rev: bool):
     return f
 
 
+def refine_variants(paths: list[str], variants: dict[str, dict], which: str = "protocol") -> None:
+    """The refinement stage alone on the homographies saved by ``run`` (several pickles, e.g.
+    both halves), once per ``variants`` entry (overrides of config.yaml's ``refine``): per
+    half, registered queries with p90 <= 2 px against the geo-referenced truth and against the
+    Sentinel-2 content truth (``bench_crossspectral.CONTENT_TRUTH``), and how many end more than
+    0.25 px worse in p90 than the feature homography (content truth)."""
+    scenes, queries = build(which)
+    by = {s.name: s for s in scenes}
+    qby = {q.name: q for q in queries}
+    bc.load_content_truth(scenes, ROOT / "results" / "benchmark" / "content_truth.json")
+    stats: dict[tuple[str, str], list] = {}
+    for path in paths:
+        for r in pickle.loads(Path(path).read_bytes()):
+            if r["outcome"] != "success":
+                continue
+            q = qby[r["query"]]
+            sc = by[q.map_scene]
+            half = bc.half_of(sc.city) if which == "protocol" else which
+            base = bc.judge(q, sc, {"H": r["H"], "accepted": True})
+            cells = [f"feature {base['p90_px']:5.2f}/{base['p90_content_px']:5.2f}"]
+            for name, over in variants.items():
+                out = bc.run_refine(q, sc, r["H"], {"bands": "auto", "refine": over})
+                j = bc.judge(q, sc, {**out, "H": r["H"], "accepted": True})
+                worse = j["p90_content_px"] > base["p90_content_px"] + 0.25
+                stats.setdefault((name, half), []).append((j["p90_px"], j["p90_content_px"], worse))
+                cells.append(f"{name} {j['p90_px']:5.2f}/{j['p90_content_px']:5.2f}"
+                             f"{' WORSE' if worse else ''} gf {out.get('global_fit')}")  # fmt: skip
+            print(f"{half[:5]} {r['query'][:32]:32s} " + " | ".join(cells), flush=True)
+    print("| variant | half | p90 <= 2 px | p90 <= 2 px (content truth) | median p90 (content) "
+          "| worse than the feature homography |")  # fmt: skip
+    for (name, half), v in stats.items():
+        a = np.array(v, float)
+        print(f"| {name} | {half} | {int((a[:, 0] <= 2).sum())}/{len(a)} | "
+              f"{int((a[:, 1] <= 2).sum())}/{len(a)} | {np.median(a[:, 1]):.2f} | "
+              f"{int(a[:, 2].sum())} |")  # fmt: skip
+
+
 def compare(path: str, base: str = "wf_default") -> None:
     """Per query of a bench_crossspectral.py JSON: p90 / max of every method beside ``base``,
     and per method and half how many registered queries end worse than ``base`` (p90 or max
@@ -252,11 +300,17 @@ if __name__ == "__main__":
     ap.add_argument("arg", nargs="?")
     ap.add_argument("--half", default="tuning")
     ap.add_argument("--out", default="/tmp/p90/tuning.pkl")
+    ap.add_argument("--set", default="protocol", choices=("protocol", "small", "tiny"))
     a = ap.parse_args()
     if a.cmd == "run":
-        run(a.half, a.out)
+        run(a.half, a.out, which=a.set)
+    elif a.cmd == "variants":  # arg: comma-separated pickles
+        refine_variants(a.arg.split(","), {
+            "default": {},
+            "block_window": {"global_fit": {"cv_block_windows": 1.0}},
+        }, which=a.set)
     elif a.cmd == "analyse":
-        analyse(a.arg, [])
+        analyse(a.arg, [], which=a.set)
     elif a.cmd == "compare":
         compare(a.arg)
     elif a.cmd == "truth":

@@ -126,3 +126,29 @@ def test_auto_takes_the_homography_when_the_view_has_perspective(scene):
     x, y = map_xy(Hf, W, HGT)
     e = np.hypot(x - tx, y - ty)
     assert np.percentile(e, 90) < 0.3, np.percentile(e, 90)
+
+
+def test_a_small_footprint_gets_a_guard_it_can_compute():
+    """A 72 x 72 px query: its tie points fall in one or two blocks of two windows (64 px), so
+    the guard's cross-validation could not be computed and the feature homography, 3 px off,
+    was kept; with blocks of one window (the default) the refit is judged and brings it in."""
+    rng = np.random.default_rng(11)
+    n, w = 300, 72
+    mi = MapImage(_texture(rng, n), Affine(1.0, 0, 1000.0, 0, -1.0, 3000.0))
+    g, th = 1.25, np.radians(30)
+    c, s = np.cos(th), np.sin(th)
+    cx, cy = 1000.0 + n / 2, 3000.0 - n / 2
+    H = np.array([[g * c, -g * s, cx - g * (c - s) * w / 2],
+                  [-g * s, -g * c, cy + g * (s + c) * w / 2],
+                  [0, 0, 1.0]])  # fmt: skip
+    tx, ty = map_xy(H, w, w)
+    band = np.clip(255.0 - mi.render(tx, ty) + rng.normal(0, 3.0, (w, w)), 1, 255).astype(np.uint8)
+    H0 = H @ _similarity_about((10.0, 10.0), 1.03, 1.5)
+    x0, y0 = map_xy(H0, w, w)
+    assert np.percentile(np.hypot(x0 - tx, y0 - ty), 90) > 2.5
+    H2, info2 = dense_fit(band, H0, mi, {"cv_block_windows": 2.0})
+    assert not info2["accepted"] and np.array_equal(H2, H0), info2
+    H1, info1 = dense_fit(band, H0, mi, {})
+    x1, y1 = map_xy(H1, w, w)
+    assert info1["accepted"], info1
+    assert np.percentile(np.hypot(x1 - tx, y1 - ty), 90) < 0.5

@@ -32,6 +32,7 @@ DEFAULTS: dict[str, Any] = {
     "reject_sigma": 3.0,  # outlier bound: this many robust sigmas of the residuals ...
     "reject_floor_px": 0.75,  # ... but never below this (query px)
     "cv_folds": 5,  # spatially blocked folds of the guard
+    "cv_block_windows": 1.0,  # side of a CV block, in tie-point windows (refine.window_px)
     "min_gain": 0.1,  # the refit's CV residual must be this fraction below the feature fit's
     "converged_px": 0.05,  # stop when the footprint moves less than this (query px)
     "model": "auto",  # auto (affine unless the homography's CV wins by min_gain) | homography | affine
@@ -249,14 +250,15 @@ def dense_fit(
     src, dst, wts, keep = last
     cover = cover_fraction(src[keep], qvalid)
     seed = int(rc.get("seed", 0))
+    block = float(c["cv_block_windows"]) * win
     if requested == "auto":
-        cv = blocked_cv(src, dst, wts, H0, px, 2.0 * win, c, seed, ("affine", "homography"))
+        cv = blocked_cv(src, dst, wts, H0, px, block, c, seed, ("affine", "homography"))
         if cv["homography"] < (1 - float(c["min_gain"])) * cv["affine"]:
             c["model"] = "homography"
             Hc, keep = robust_fit(src, dst, wts, px, c)
             cv["refit"] = cv["homography"]
     else:
-        cv = blocked_cv(src, dst, wts, H0, px, 2.0 * win, c, seed)
+        cv = blocked_cv(src, dst, wts, H0, px, block, c, seed)
     info["model"] = str(c["model"])
     moved = residuals_px(Hc, corners, np.c_[apply_h(H0, corners[:, 0], corners[:, 1])], px)
     info.update(
