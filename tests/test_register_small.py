@@ -172,3 +172,40 @@ def test_dense_search_further_peaks_find_a_second_copy_and_stay_apart():
         for j in range(i):
             dang = abs((peaks[i][1] - peaks[j][1] + 180.0) % 360.0 - 180.0)
             assert dang > 20.0 or np.hypot(*(places[i] - places[j])) > 8.0 - 1.5
+
+
+def _field(seed: int, shape: tuple[int, int], sigma: float = 2.0) -> np.ndarray:
+    """A smooth random uint8 image 1..255."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    m = cv2.GaussianBlur(rng.random(shape).astype(np.float32), (0, 0), sigma)
+    return (1 + 254 * (m - m.min()) / (m.max() - m.min())).astype(np.uint8)
+
+
+def test_cfog_null_accepts_the_true_place_and_rejects_an_unrelated_map():
+    """``dense_null.scan``: a rotated, noisy, contrast-inverted crop of the map is found with a
+    block-maxima NFA far below the default bound and ``fine_pose`` puts it within a pixel and a
+    degree; the same kind of query cut from an unrelated field is not accepted (5 draws)."""
+    import cv2
+
+    from georeg.register.dense_null import NULL_DEFAULTS, fine_pose, scan
+
+    m = _field(2, (320, 320))
+    theta = 23.0
+    A = cv2.getRotationMatrix2D((200.0, 120.0), theta, 1.0)  # query centre = map (200, 120)
+    A[:, 2] += (30.0 - 200.0, 30.0 - 120.0)
+    rng = np.random.default_rng(4)
+    q = cv2.warpAffine(m.astype(np.float32), A, (61, 61), flags=cv2.INTER_LINEAR)
+    q = np.clip(256.0 - q + rng.normal(0, 25.0, q.shape), 1, 255).astype(np.uint8)
+    r = scan(q, 1.0, m, 10.0, 96, 8, 12.0)
+    bound = NULL_DEFAULTS["log_nfa_max"]
+    assert r is not None and r["log10_nfa"] < bound - 2.0
+    S, ang, _ = fine_pose(q, 1.0, m, r["S"], r["angle_deg"])
+    c = matching.apply_h(S, np.array([[30.0, 30.0]]))[0]
+    assert np.hypot(c[0] - 200.0, c[1] - 120.0) < 1.0
+    assert abs((ang + theta + 180.0) % 360.0 - 180.0) <= 1.0  # cv2's angle is counter-clockwise
+    for seed in range(5):
+        other = _field(100 + seed, (61, 61))
+        ru = scan(other, 1.0, m, 10.0, 96, 8, 12.0)
+        assert ru is not None and ru["log10_nfa"] > bound
