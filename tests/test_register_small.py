@@ -198,8 +198,10 @@ def test_cfog_null_accepts_the_true_place_and_rejects_an_unrelated_map():
     rng = np.random.default_rng(4)
     q = cv2.warpAffine(m.astype(np.float32), A, (61, 61), flags=cv2.INTER_LINEAR)
     q = np.clip(256.0 - q + rng.normal(0, 25.0, q.shape), 1, 255).astype(np.uint8)
-    r = scan(q, 1.0, m, 10.0, 96, 8, 12.0)
-    bound = NULL_DEFAULTS["log_nfa_max"]
+    nd = NULL_DEFAULTS
+    args = (10.0, 96, nd["block_px"], nd["exclude_px"], nd["tail_k"])
+    r = scan(q, 1.0, m, *args)
+    bound = nd["log_nfa_max"]
     assert r is not None and r["log10_nfa"] < bound - 2.0
     S, ang, _ = fine_pose(q, 1.0, m, r["S"], r["angle_deg"])
     c = matching.apply_h(S, np.array([[30.0, 30.0]]))[0]
@@ -207,5 +209,45 @@ def test_cfog_null_accepts_the_true_place_and_rejects_an_unrelated_map():
     assert abs((ang + theta + 180.0) % 360.0 - 180.0) <= 1.0  # cv2's angle is counter-clockwise
     for seed in range(5):
         other = _field(100 + seed, (61, 61))
-        ru = scan(other, 1.0, m, 10.0, 96, 8, 12.0)
+        ru = scan(other, 1.0, m, *args)
         assert ru is not None and ru["log10_nfa"] > bound
+
+
+@needs_data
+def test_cfog_null_registers_a_tiny_sentinel2_query_and_rejects_another_city():
+    """``register.small.null_test`` on a tiny query of a tuning city (``--set tiny``, 52 px,
+    Sentinel-2 SWIR 20 m vs RGB 10 m of another date) that the candidate windows' guided
+    re-match rejects (log10 NFA +4.9 to +6.0): the whole map's CFOG peak passes the top-spacing
+    test and lands within 5 map px of the truth; the same query against another city's map
+    does not pass."""
+    import cv2
+
+    bc = _bench()
+    from georeg.index.features import merged_conf
+    from georeg.register.dense_null import null_conf
+    from georeg.register.search import MapSource
+    from georeg.register.small import null_register, small_conf
+
+    cv2.setNumThreads(1)
+    scenes, qs = bc.build_small_set(5, 11, bc.TINY_SIDES, "tiny_", 600)
+    by = {s.name: s for s in scenes}
+    name = "tiny_s2_abudhabi_102_2.2um"
+    q = next(x for x in qs if x.name == name)
+    neg = next(x for x in qs if x.name.startswith(name + "_vs_"))
+    conf = bc._deep(bc.workflow_register_conf(), {"small": {"null_test": {"enabled": True}}})
+    bound = null_conf(small_conf(conf))["log_nfa_max"]
+    out = {}
+    for key, qq in (("pos", q), ("neg", neg)):
+        sc = by[qq.map_scene]
+        g = sc.map_gsd
+        mxy, mdesc, mang, msize = bc.map_features(sc, g, merged_conf(bc.FEATURES))
+        src = MapSource(mxy, mdesc, g, angle=mang, scale=msize * g)
+        rec = null_register(bc.query_stack(qq, "auto"), qq.gsd, src, conf,
+                            bc.plain_window_reader(sc))  # fmt: skip
+        H = None if rec.get("homography") is None else np.array(rec["homography"])
+        out[key] = (rec, bc.judge(qq, sc, {"accepted": rec["accepted"], "H": H}))
+    rec, j = out["pos"]
+    assert rec["accepted"] and rec["log10_nfa"] < bound, rec
+    assert j["outcome"] == "success" and j["error_px"] < 5.0
+    assert rec["null_blocks"] > 1000 and rec["gap"] > 0
+    assert not out["neg"][0]["accepted"] and out["neg"][0]["log10_nfa"] > bound

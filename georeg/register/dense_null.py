@@ -33,7 +33,7 @@ from georeg.register.dense import correlation_surface
 
 NULL_DEFAULTS: dict[str, Any] = {
     "enabled": False,
-    "block_px": 8,  # block side (correlation px, i.e. after the max_side shrink)
+    "block_px": 16,  # block side (correlation px, i.e. after the max_side shrink)
     "exclude_px": 12.0,  # map px around the tested peak left out of the null sample
     "tail_k": 30,  # top null block maxima that give the tail's scale
     "max_map_px": 1_000_000,  # the map (shrunk) may have at most this many px, else not run
@@ -68,7 +68,7 @@ def scan(
     m_u8: np.ndarray,
     step_deg: float = 10.0,
     max_side: int = 96,
-    block_px: int = 8,
+    block_px: int = 16,
     exclude_px: float = 12.0,
     tail_k: int = 30,
 ) -> dict[str, Any] | None:
