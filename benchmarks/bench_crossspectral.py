@@ -317,6 +317,7 @@ METHODS: dict[str, dict[str, Any]] = {
     # the calibrated CFOG-peak null as a second source of evidence (docs/BENCHMARKS.md "A
     # calibrated null for the CFOG peak")
     "wf_null": {"pipeline": {"small": {"null_test": {"enabled": True}}}, "bands": "auto"},
+    "wf_nonull": {"pipeline": {"small": {"null_test": {"enabled": False}}}, "bands": "auto"},
     "wf_small_searched": {"pipeline": {"small": {"enabled": True, "windows": "searched"}},
                           "bands": "auto"},  # fmt: skip
     # the same with the ranking before the Hough vote on plain arrays (register.index.rank:

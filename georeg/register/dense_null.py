@@ -32,7 +32,7 @@ import numpy as np
 from georeg.register.dense import correlation_surface
 
 NULL_DEFAULTS: dict[str, Any] = {
-    "enabled": False,
+    "enabled": True,
     "block_px": 16,  # block side (correlation px, i.e. after the max_side shrink)
     "exclude_px": 12.0,  # map px around the tested peak left out of the null sample
     "tail_k": 30,  # top null block maxima that give the tail's scale
