@@ -251,3 +251,38 @@ def test_cfog_null_registers_a_tiny_sentinel2_query_and_rejects_another_city():
     assert j["outcome"] == "success" and j["error_px"] < 5.0
     assert rec["null_blocks"] > 1000 and rec["gap"] > 0
     assert not out["neg"][0]["accepted"] and out["neg"][0]["log10_nfa"] > bound
+
+
+def test_null_register_accepts_a_synthetic_crop_records_the_evidence_and_skips_large_maps():
+    """``small.null_register`` on plain arrays (map x = col g, y = -row g): a rotated crop of
+    the map is accepted with its homography within a map pixel of the truth and the evidence in
+    the record; with ``max_map_px`` below the map's size the scan is not run."""
+    import cv2
+
+    from georeg.register.search import MapSource
+    from georeg.register.small import null_register
+
+    g = 10.0
+    m = _field(5, (300, 300))
+    A = cv2.getRotationMatrix2D((150.0, 170.0), -40.0, 1.0)  # query centre = map px (150, 170)
+    A[:, 2] += (30.0 - 150.0, 30.0 - 170.0)
+    q = cv2.warpAffine(m.astype(np.float32), A, (61, 61), flags=cv2.INTER_LINEAR)
+    q = np.clip(q, 1, 255).astype(np.uint8)
+    src = MapSource(np.array([[0.0, 0.0], [299 * g, -299 * g]]), np.zeros((2, 128), np.float32), g)
+
+    def read(b):
+        c0, c1 = max(0, math.floor(b[0] / g)), min(300, math.ceil(b[2] / g) + 1)
+        r0, r1 = max(0, math.floor(-b[3] / g)), min(300, math.ceil(-b[1] / g) + 1)
+        win = m[r0:r1, c0:c1].astype(np.float32)
+        return win, np.array([[g, 0, c0 * g], [0, -g, -r0 * g], [0, 0, 1.0]])
+
+    conf = {"small": {"null_test": {"enabled": True}}}
+    rec = null_register(q, g, src, conf, read)
+    assert rec["accepted"], rec
+    c = matching.apply_h(np.array(rec["homography"]), np.array([[30.0, 30.0]]))[0]
+    assert np.hypot(c[0] / g - 150.0, -c[1] / g - 170.0) < 1.0
+    for k in ("score", "null_max", "gap", "tail_scale", "null_blocks", "log10_p", "statistic"):
+        assert k in rec
+    assert rec["log10_nfa"] < -3.0 and rec["null_blocks"] >= 30
+    small = null_register(q, g, src, {"small": {"null_test": {"max_map_px": 1000}}}, read)
+    assert not small["accepted"] and "too large" in small["reason"]

@@ -371,10 +371,15 @@ def null_register(
         rec.update(reason="no orthophoto", seconds=time.perf_counter() - t0)
         return rec
     gray, A = got
-    m_u8 = window_u8(gray)
     m_px = float(np.sqrt(abs(np.linalg.det(A[:2, :2]))))
     q0 = u8 if u8.ndim == 2 else u8[0]
     factor = float(q_gsd) / m_px
+    est = gray.size * min(1.0, float(sc["max_side"]) / (max(h, w) * factor)) ** 2
+    if est > float(nc["max_map_px"]):  # the orthophoto is finer than the features
+        rec.update(reason=f"map too large for the scan ({est:.0f} > {nc['max_map_px']} px)",
+                   seconds=time.perf_counter() - t0)  # fmt: skip
+        return rec
+    m_u8 = window_u8(gray)
     r = scan(q0, factor, m_u8, float(sc["step_deg"]), int(sc["max_side"]), int(nc["block_px"]),
              float(nc["exclude_px"]), int(nc["tail_k"]))  # fmt: skip
     if r is None:
