@@ -314,6 +314,10 @@ METHODS: dict[str, dict[str, Any]] = {
                 "bands": "auto"},  # fmt: skip
     "wf_tiny_refined": {"pipeline": {"ransac": {"similarity_below": 8}, "small": {"peaks": 3}},
                         "bands": "auto", "refine": {}},  # fmt: skip
+    # the calibrated CFOG-peak null as a second source of evidence (docs/BENCHMARKS.md "A
+    # calibrated null for the CFOG peak")
+    "wf_null": {"pipeline": {"small": {"null_test": {"enabled": True}}}, "bands": "auto"},
+    "wf_nonull": {"pipeline": {"small": {"null_test": {"enabled": False}}}, "bands": "auto"},
     "wf_small_searched": {"pipeline": {"small": {"enabled": True, "windows": "searched"}},
                           "bands": "auto"},  # fmt: skip
     # the same with the ranking before the Hough vote on plain arrays (register.index.rank:
@@ -518,8 +522,10 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
     wins = (split.get("small") or {}).get("windows") or []
     sw = [w.get("log10_nfa") for w in wins if w.get("log10_nfa") is not None]
     acc = [w.get("peak") for w in wins if w.get("accepted")]
+    cn = (split.get("small") or {}).get("cfog_null") or {}
     extra: dict[str, Any] = {"small_nfa": min(sw) if sw else None,
-                             "small_peak": acc[0] if acc else None}
+                             "small_peak": acc[0] if acc else None,
+                             "null_nfa": cn.get("log10_nfa"), "null_accepted": cn.get("accepted")}
     if spec.get("refine") is not None and res["status"] == "registered":
         extra.update(run_refine(q, sc_map, np.array(res["homography"]), spec))
     return {
@@ -856,6 +862,7 @@ def main(argv: list[str] | None = None) -> int:
                    "dense_z": res.get("dense_z"), "dense_log10_nfa": res.get("dense_log10_nfa"),
                    "dense_ratio": res.get("dense_ratio"), "refine_model": res.get("refine_model"),
                    "global_fit": res.get("global_fit"), "small_nfa": res.get("small_nfa"),
+                   "null_nfa": res.get("null_nfa"), "null_accepted": res.get("null_accepted"),
                    "global_fit_reason": res.get("global_fit_reason")}  # fmt: skip
             rows[name].append(rec)
             if a.v:
@@ -867,7 +874,10 @@ def main(argv: list[str] | None = None) -> int:
                       + ("" if res.get("small_nfa") is None
                          else f" small log10 NFA {res['small_nfa']:.1f}")
                       + ("" if res.get("small_peak") is None
-                         else f" peak {res['small_peak']}"), flush=True)  # fmt: skip
+                         else f" peak {res['small_peak']}")
+                      + ("" if res.get("null_nfa") is None
+                         else f" null log10 p {res['null_nfa']:.1f}"
+                         + (" ACCEPTED" if res.get("null_accepted") else "")), flush=True)  # fmt: skip
     print(f"\n{len(queries)} queries and unrelated pairs, seed {a.seed}; halves by city: "
           f"tuning {', '.join(TUNING)}; checking {', '.join(CHECKING)}")  # fmt: skip
     print("| method | half | registered | false accepts | unrelated accepted | median err px "

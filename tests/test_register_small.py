@@ -172,3 +172,117 @@ def test_dense_search_further_peaks_find_a_second_copy_and_stay_apart():
         for j in range(i):
             dang = abs((peaks[i][1] - peaks[j][1] + 180.0) % 360.0 - 180.0)
             assert dang > 20.0 or np.hypot(*(places[i] - places[j])) > 8.0 - 1.5
+
+
+def _field(seed: int, shape: tuple[int, int], sigma: float = 2.0) -> np.ndarray:
+    """A smooth random uint8 image 1..255."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    m = cv2.GaussianBlur(rng.random(shape).astype(np.float32), (0, 0), sigma)
+    return (1 + 254 * (m - m.min()) / (m.max() - m.min())).astype(np.uint8)
+
+
+def test_cfog_null_accepts_the_true_place_and_rejects_an_unrelated_map():
+    """``dense_null.scan``: a rotated, noisy, contrast-inverted crop of the map is found with a
+    block-maxima NFA far below the default bound and ``fine_pose`` puts it within a pixel and a
+    degree; the same kind of query cut from an unrelated field is not accepted (5 draws)."""
+    import cv2
+
+    from georeg.register.dense_null import NULL_DEFAULTS, fine_pose, scan
+
+    m = _field(2, (320, 320))
+    theta = 23.0
+    A = cv2.getRotationMatrix2D((200.0, 120.0), theta, 1.0)  # query centre = map (200, 120)
+    A[:, 2] += (30.0 - 200.0, 30.0 - 120.0)
+    rng = np.random.default_rng(4)
+    q = cv2.warpAffine(m.astype(np.float32), A, (61, 61), flags=cv2.INTER_LINEAR)
+    q = np.clip(256.0 - q + rng.normal(0, 25.0, q.shape), 1, 255).astype(np.uint8)
+    nd = NULL_DEFAULTS
+    args = (10.0, 96, nd["block_px"], nd["exclude_px"], nd["tail_k"])
+    r = scan(q, 1.0, m, *args)
+    bound = nd["log_nfa_max"]
+    assert r is not None and r["log10_nfa"] < bound - 2.0
+    S, ang, _ = fine_pose(q, 1.0, m, r["S"], r["angle_deg"])
+    c = matching.apply_h(S, np.array([[30.0, 30.0]]))[0]
+    assert np.hypot(c[0] - 200.0, c[1] - 120.0) < 1.0
+    assert abs((ang + theta + 180.0) % 360.0 - 180.0) <= 1.0  # cv2's angle is counter-clockwise
+    for seed in range(5):
+        other = _field(100 + seed, (61, 61))
+        ru = scan(other, 1.0, m, *args)
+        assert ru is not None and ru["log10_nfa"] > bound
+
+
+@needs_data
+def test_cfog_null_registers_a_tiny_sentinel2_query_and_rejects_another_city():
+    """``register.small.null_test`` on a tiny query of a tuning city (``--set tiny``, 52 px,
+    Sentinel-2 SWIR 20 m vs RGB 10 m of another date) that the candidate windows' guided
+    re-match rejects (log10 NFA +4.9 to +6.0): the whole map's CFOG peak passes the top-spacing
+    test and lands within 5 map px of the truth; the same query against another city's map
+    does not pass."""
+    import cv2
+
+    bc = _bench()
+    from georeg.index.features import merged_conf
+    from georeg.register.dense_null import null_conf
+    from georeg.register.search import MapSource
+    from georeg.register.small import null_register, small_conf
+
+    cv2.setNumThreads(1)
+    scenes, qs = bc.build_small_set(5, 11, bc.TINY_SIDES, "tiny_", 600)
+    by = {s.name: s for s in scenes}
+    name = "tiny_s2_abudhabi_102_2.2um"
+    q = next(x for x in qs if x.name == name)
+    neg = next(x for x in qs if x.name.startswith(name + "_vs_"))
+    conf = bc._deep(bc.workflow_register_conf(), {"small": {"null_test": {"enabled": True}}})
+    bound = null_conf(small_conf(conf))["log_nfa_max"]
+    out = {}
+    for key, qq in (("pos", q), ("neg", neg)):
+        sc = by[qq.map_scene]
+        g = sc.map_gsd
+        mxy, mdesc, mang, msize = bc.map_features(sc, g, merged_conf(bc.FEATURES))
+        src = MapSource(mxy, mdesc, g, angle=mang, scale=msize * g)
+        rec = null_register(bc.query_stack(qq, "auto"), qq.gsd, src, conf,
+                            bc.plain_window_reader(sc))  # fmt: skip
+        H = None if rec.get("homography") is None else np.array(rec["homography"])
+        out[key] = (rec, bc.judge(qq, sc, {"accepted": rec["accepted"], "H": H}))
+    rec, j = out["pos"]
+    assert rec["accepted"] and rec["log10_nfa"] < bound, rec
+    assert j["outcome"] == "success" and j["error_px"] < 5.0
+    assert rec["null_blocks"] > 1000 and rec["gap"] > 0
+    assert not out["neg"][0]["accepted"] and out["neg"][0]["log10_nfa"] > bound
+
+
+def test_null_register_accepts_a_synthetic_crop_records_the_evidence_and_skips_large_maps():
+    """``small.null_register`` on plain arrays (map x = col g, y = -row g): a rotated crop of
+    the map is accepted with its homography within a map pixel of the truth and the evidence in
+    the record; with ``max_map_px`` below the map's size the scan is not run."""
+    import cv2
+
+    from georeg.register.search import MapSource
+    from georeg.register.small import null_register
+
+    g = 10.0
+    m = _field(5, (300, 300))
+    A = cv2.getRotationMatrix2D((150.0, 170.0), -40.0, 1.0)  # query centre = map px (150, 170)
+    A[:, 2] += (30.0 - 150.0, 30.0 - 170.0)
+    q = cv2.warpAffine(m.astype(np.float32), A, (61, 61), flags=cv2.INTER_LINEAR)
+    q = np.clip(q, 1, 255).astype(np.uint8)
+    src = MapSource(np.array([[0.0, 0.0], [299 * g, -299 * g]]), np.zeros((2, 128), np.float32), g)
+
+    def read(b):
+        c0, c1 = max(0, math.floor(b[0] / g)), min(300, math.ceil(b[2] / g) + 1)
+        r0, r1 = max(0, math.floor(-b[3] / g)), min(300, math.ceil(-b[1] / g) + 1)
+        win = m[r0:r1, c0:c1].astype(np.float32)
+        return win, np.array([[g, 0, c0 * g], [0, -g, -r0 * g], [0, 0, 1.0]])
+
+    conf = {"small": {"null_test": {"enabled": True}}}
+    rec = null_register(q, g, src, conf, read)
+    assert rec["accepted"], rec
+    c = matching.apply_h(np.array(rec["homography"]), np.array([[30.0, 30.0]]))[0]
+    assert np.hypot(c[0] / g - 150.0, -c[1] / g - 170.0) < 1.0
+    for k in ("score", "null_max", "gap", "tail_scale", "null_blocks", "log10_p", "statistic"):
+        assert k in rec
+    assert rec["log10_nfa"] < -3.0 and rec["null_blocks"] >= 30
+    small = null_register(q, g, src, {"small": {"null_test": {"max_map_px": 1000}}}, read)
+    assert not small["accepted"] and "too large" in small["reason"]

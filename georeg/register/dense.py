@@ -17,6 +17,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+import scipy.fft as sfft
 from scipy.stats import norm
 
 from georeg.register import acceptance, crossspectral, matching
@@ -54,12 +55,42 @@ def _inner(valid: np.ndarray, margin: int = 4) -> np.ndarray:
     return cv2.erode(valid.astype(np.uint8), k, borderValue=0) > 0
 
 
+def _rfft2_small(a: np.ndarray, P: int, Q: int) -> np.ndarray:
+    """``rfft2(a, s=(P, Q))`` over the last two axes of a small ``a`` (C, h, w) zero-padded to
+    P x Q: the row transforms of the h non-zero rows only, then the column transforms."""
+    r = sfft.rfft(a, n=Q, axis=-1)
+    return sfft.fft(r, n=P, axis=-2)
+
+
 def _scale(f: float) -> np.ndarray:
     """Pixel-centre scaling by f as a 3 x 3 matrix: u' = (u + 0.5) f - 0.5."""
     return np.array([[f, 0, 0.5 * f - 0.5], [0, f, 0.5 * f - 0.5], [0, 0, 1.0]])
 
 
-def dense_search(
+@dataclass
+class Surface:
+    """The correlation of a query with a map window over rotations (``dense_search``'s first
+    step): ``scores[k, dy, dx]`` = mean channel correlation per valid query pixel at rotation
+    ``angles[k]`` and offset (dy, dx) of the shrunk canvas (-inf = not searched)."""
+
+    scores: np.ndarray  # (rotations, oy, ox) float32
+    angles: np.ndarray
+    mats: list[np.ndarray]  # per rotation: shrunk query px -> canvas px (3 x 3)
+    s: float  # shrink factor of query (at the map GSD) and window
+    pd: int  # padding of the shrunk window
+    factor: float  # query GSD / map GSD
+
+    def to_window(self, k: int, dy: int, dx: int) -> np.ndarray:
+        """3 x 3 similarity query px (col, row) -> map window px of rotation k, offset (dy, dx)."""
+        # query px -> shrunken query -> canvas -> shrunken map (+ offset) -> map window px
+        T = np.array([[1.0, 0, dx - self.pd], [0, 1.0, dy - self.pd], [0, 0, 1]])
+        return (np.linalg.inv(_scale(self.s)) @ T @ self.mats[k] @ _scale(self.s)
+                @ _scale(self.factor))  # fmt: skip
+
+    query_shape: tuple[int, int] = (0, 0)  # shrunk query (rows, cols)
+
+
+def correlation_surface(
     q_u8: np.ndarray,
     factor: float,
     m_u8: np.ndarray,
@@ -68,14 +99,12 @@ def dense_search(
     orientations: int = 9,
     min_overlap: float = 0.9,
     centre_box: tuple[float, float, float, float] | None = None,
-    n_peaks: int = 1,
-    apart_px: float = 8.0,
-) -> DenseResult | None:
-    """Find the query (uint8, 0 = nodata; ``factor`` = query GSD / map GSD) in the map window
-    ``m_u8`` (uint8, 0 = nodata) over rotations of ``step_deg``. None when nothing overlaps.
-    ``centre_box`` = (col0, row0, col1, row1) in window px: only offsets that put the query's
-    centre inside it are searched. ``n_peaks`` > 1: also the next best peaks in ``others``, each
-    more than 20 deg or ``apart_px`` window px away from every peak taken before it."""
+    angles: np.ndarray | None = None,
+) -> Surface | None:
+    """The CFOG correlation of the query (uint8, 0 = nodata; ``factor`` = query GSD / map GSD)
+    with the map window ``m_u8`` (uint8, 0 = nodata) at every rotation step and offset (see
+    ``dense_search``; ``angles`` in degrees instead of every ``step_deg``). None when nothing
+    overlaps."""
     qv0 = q_u8 > 0
     q, qv = _shrink(q_u8, qv0, factor)
     s = min(1.0, max_side / max(q.shape))
@@ -91,14 +120,15 @@ def dense_search(
     mv = np.pad(mv, pd)
     M = cfog(m, mv, orientations)
     M[:, ~_inner(mv)] = 0.0  # no nodata-border gradients: they would align with the query's
-    P, Q = M.shape[1] + D, M.shape[2] + D
-    FM = np.fft.rfft2(M, s=(P, Q))
-    FMv = np.fft.rfft2(mv.astype(np.float32), s=(P, Q))
+    # single precision, FFT sizes with small prime factors: the same linear correlation
+    P, Q = sfft.next_fast_len(M.shape[1] + D, True), sfft.next_fast_len(M.shape[2] + D, True)
+    FM = sfft.rfft2(M.astype(np.float32), s=(P, Q))
+    FMv = sfft.rfft2(mv.astype(np.float32), s=(P, Q))
     # offsets (dy, dx) with the canvas inside the padded map: the map window starts at 0
     oy, ox = M.shape[1] - D + 1, M.shape[2] - D + 1
     if oy < 1 or ox < 1:
         return None
-    angles = np.arange(0.0, 360.0, step_deg)
+    angles = np.arange(0.0, 360.0, step_deg) if angles is None else np.asarray(angles, float)
     scores = np.full((len(angles), oy, ox), -np.inf, np.float32)
     allowed = np.ones((oy, ox), bool)
     if centre_box is not None:
@@ -118,12 +148,40 @@ def dense_search(
         C[:, ~vr] = 0.0
         n = float(vr.sum())
         C[:, vr] -= C[:, vr].mean(axis=1, keepdims=True)  # zero mean: chance offsets score ~0
-        FQ = np.fft.rfft2(C, s=(P, Q))
-        corr = np.fft.irfft2((FM * np.conj(FQ)).sum(0), s=(P, Q))[:oy, :ox]
-        cnt = np.fft.irfft2(FMv * np.conj(np.fft.rfft2(vr.astype(np.float32), s=(P, Q))), s=(P, Q))
+        FQ = _rfft2_small(C.astype(np.float32), P, Q)
+        corr = sfft.irfft2((FM * np.conj(FQ)).sum(0), s=(P, Q))[:oy, :ox]
+        FV = _rfft2_small(vr.astype(np.float32)[None], P, Q)[0]
+        cnt = sfft.irfft2(FMv * np.conj(FV), s=(P, Q))
         ok = (cnt[:oy, :ox] >= min_overlap * n) & allowed
         scores[k] = np.where(ok, corr / max(n, 1.0), -np.inf)
         mats.append(np.vstack([A, [0, 0, 1]]))
+    return Surface(scores, angles, mats, s, pd, factor, (h, w))
+
+
+def dense_search(
+    q_u8: np.ndarray,
+    factor: float,
+    m_u8: np.ndarray,
+    step_deg: float = 10.0,
+    max_side: int = 96,
+    orientations: int = 9,
+    min_overlap: float = 0.9,
+    centre_box: tuple[float, float, float, float] | None = None,
+    n_peaks: int = 1,
+    apart_px: float = 8.0,
+) -> DenseResult | None:
+    """Find the query (uint8, 0 = nodata; ``factor`` = query GSD / map GSD) in the map window
+    ``m_u8`` (uint8, 0 = nodata) over rotations of ``step_deg``. None when nothing overlaps.
+    ``centre_box`` = (col0, row0, col1, row1) in window px: only offsets that put the query's
+    centre inside it are searched. ``n_peaks`` > 1: also the next best peaks in ``others``, each
+    more than 20 deg or ``apart_px`` window px away from every peak taken before it."""
+    sf = correlation_surface(q_u8, factor, m_u8, step_deg, max_side, orientations, min_overlap,
+                             centre_box)  # fmt: skip
+    if sf is None:
+        return None
+    scores, angles, s = sf.scores, sf.angles, sf.s
+    oy, ox = scores.shape[1:]
+    to_window = sf.to_window
     fin = np.isfinite(scores)
     if not fin.any():
         return None
@@ -143,11 +201,6 @@ def dense_search(
     second = float(np.max(np.where(np.isfinite(other), other, -np.inf)))
     tests = int(fin.sum())
     log_nfa = math.log10(tests) + float(norm.logsf(z)) / math.log(10.0)
-
-    def to_window(k: int, dy: int, dx: int) -> np.ndarray:
-        # query px -> shrunken query -> canvas -> shrunken map (+ offset) -> map window px
-        T = np.array([[1.0, 0, dx - pd], [0, 1.0, dy - pd], [0, 0, 1]])
-        return np.linalg.inv(_scale(s)) @ T @ mats[k] @ _scale(s) @ _scale(factor)
 
     others = []
     rest = np.where(fin, scores, -np.inf)

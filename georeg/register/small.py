@@ -28,6 +28,7 @@ import numpy as np
 
 from georeg.index.features import detect_and_describe, merged_conf, resample
 from georeg.register import acceptance, crossspectral, matching
+from georeg.register.dense_null import null_conf
 from georeg.register.search import MapSource, QueryFeatures, query_features
 
 SMALL_DEFAULTS: dict[str, Any] = {
@@ -321,5 +322,80 @@ def small_fallback(
         return small_register(u8, gsd_m, window_u8(gray), A, source.gsd_m, conf,
                               source.features_conf, seed + k, len(windows), qf, b)  # fmt: skip
 
-    return first_accepted_window(windows, read_window, register, parts, full.height, "small",
-                                 ("angle_deg", "dense_score", "peak"), grow)  # fmt: skip
+    parts, rec = first_accepted_window(windows, read_window, register, parts, full.height,
+                                       "small", ("angle_deg", "dense_score", "peak"), grow)  # fmt: skip
+    if rec.get("accepted_window") is None and null_conf(sc)["enabled"]:
+        got = null_register(u8, gsd_m, source, conf, read_window)
+        rec["cfog_null"] = {k: v for k, v in got.items() if k not in ("homography",)}
+        if got["accepted"]:
+            part = {**got, "part": len(parts), "rows": [0, h], "whole_query": True,
+                    "small": True, "candidates_tried": len(windows) + 1, "candidates": []}  # fmt: skip
+            parts = [*parts, part]
+    return parts, rec
+
+
+def null_register(
+    u8: np.ndarray,
+    q_gsd: float,
+    source: MapSource,
+    conf: dict[str, Any],
+    read_window: Any,
+) -> dict[str, Any]:
+    """The small query's CFOG peak over the whole map, decided by the calibrated block-maxima
+    null (``georeg.register.dense_null``, ``register.small.null_test``); an accepted peak becomes a
+    similarity at the known GSD refined by ``dense_null.fine_pose`` and checked for
+    plausibility. A record like a search part's (``accepted``, ``homography``, ``log10_nfa``
+    = the CFOG peak's, ``inliers`` 0) with the evidence (statistic, p-value, null size)."""
+    from georeg.register.dense import window_u8
+    from georeg.register.dense_null import fine_pose, scan
+
+    t0 = time.perf_counter()
+    sc = small_conf(conf)
+    nc = null_conf(sc)
+    h, w = u8.shape[-2:]
+    rec: dict[str, Any] = {"method": "small_cfog_null", "accepted": False, "homography": None,
+                           "inliers": 0, "matches": 0, "statistic": "CFOG peak score, top spacing",
+                           "block_px": int(nc["block_px"])}  # fmt: skip
+    b = source.bounds
+    pad = 0.5 * math.hypot(w, h) * float(q_gsd)
+    b = (b[0] - pad, b[1] - pad, b[2] + pad, b[3] + pad)
+    # the map as the correlation sees it: the query shrunk to max_side px
+    per_m = min(1.0 / source.gsd_m, float(sc["max_side"]) / (max(h, w) * float(q_gsd)))
+    est = (b[2] - b[0]) * (b[3] - b[1]) * per_m**2
+    if est > float(nc["max_map_px"]):
+        rec.update(reason=f"map too large for the scan ({est:.0f} > {nc['max_map_px']} px)",
+                   seconds=time.perf_counter() - t0)  # fmt: skip
+        return rec
+    got = read_window(b)
+    if got is None:
+        rec.update(reason="no orthophoto", seconds=time.perf_counter() - t0)
+        return rec
+    gray, A = got
+    m_px = float(np.sqrt(abs(np.linalg.det(A[:2, :2]))))
+    q0 = u8 if u8.ndim == 2 else u8[0]
+    factor = float(q_gsd) / m_px
+    est = gray.size * min(1.0, float(sc["max_side"]) / (max(h, w) * factor)) ** 2
+    if est > float(nc["max_map_px"]):  # the orthophoto is finer than the features
+        rec.update(reason=f"map too large for the scan ({est:.0f} > {nc['max_map_px']} px)",
+                   seconds=time.perf_counter() - t0)  # fmt: skip
+        return rec
+    m_u8 = window_u8(gray)
+    r = scan(q0, factor, m_u8, float(sc["step_deg"]), int(sc["max_side"]), int(nc["block_px"]),
+             float(nc["exclude_px"]), int(nc["tail_k"]))  # fmt: skip
+    if r is None:
+        rec.update(reason="no overlap or too few null blocks", seconds=time.perf_counter() - t0)
+        return rec
+    rec.update({k: v for k, v in r.items() if k != "S"})
+    reasons = []
+    if not r["log10_nfa"] < float(nc["log_nfa_max"]):
+        reasons.append(f"CFOG peak log10 NFA {r['log10_nfa']:.1f} >= {nc['log_nfa_max']}")
+    else:
+        S, ang, score = fine_pose(q0, factor, m_u8, r["S"], r["angle_deg"],
+                                  float(nc["fine_step_deg"]), float(nc["fine_range_deg"]))  # fmt: skip
+        H = A @ S
+        rec.update(homography=H.tolist(), fine_angle_deg=ang, fine_score=score)
+        ac = conf.get("acceptance", {}) or {}
+        plaus = acceptance.plausibility(H, w, h, q_gsd, ac)
+        reasons += plaus.get("reasons", [])
+    rec.update(accepted=not reasons, reason="; ".join(reasons), seconds=time.perf_counter() - t0)
+    return rec
