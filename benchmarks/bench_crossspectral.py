@@ -314,6 +314,12 @@ METHODS: dict[str, dict[str, Any]] = {
                 "bands": "auto"},  # fmt: skip
     "wf_tiny_refined": {"pipeline": {"ransac": {"similarity_below": 8}, "small": {"peaks": 3}},
                         "bands": "auto", "refine": {}},  # fmt: skip
+    # accepted fits checked densely against the orthophoto in the fuse step
+    # (georeg.register.ortho_check, register.ortho_check): a dense affine refit replaces the fit
+    # when its CV is better and it verifies; a fit that does not verify becomes not found
+    "wf_ortho_off": {"pipeline": {"ortho_check": {"mode": "off"}}, "bands": "auto"},
+    "wf_ortho": {"pipeline": {"ortho_check": {"mode": "reject"}}, "bands": "auto"},
+    "wf_ortho_record": {"pipeline": {"ortho_check": {"mode": "record"}}, "bands": "auto"},
     "wf_small_searched": {"pipeline": {"small": {"enabled": True, "windows": "searched"}},
                           "bands": "auto"},  # fmt: skip
     # the same with the ranking before the Hough vote on plain arrays (register.index.rank:
@@ -520,6 +526,9 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
     acc = [w.get("peak") for w in wins if w.get("accepted")]
     extra: dict[str, Any] = {"small_nfa": min(sw) if sw else None,
                              "small_peak": acc[0] if acc else None}
+    oc = res.get("ortho_check") or {}
+    extra["ortho"] = oc.get("outcome")
+    extra["ortho_replaced"] = oc.get("replaced")
     if spec.get("refine") is not None and res["status"] == "registered":
         extra.update(run_refine(q, sc_map, np.array(res["homography"]), spec))
     return {
@@ -797,7 +806,8 @@ def main(argv: list[str] | None = None) -> int:
                    "dense_z": res.get("dense_z"), "dense_log10_nfa": res.get("dense_log10_nfa"),
                    "dense_ratio": res.get("dense_ratio"), "refine_model": res.get("refine_model"),
                    "global_fit": res.get("global_fit"), "small_nfa": res.get("small_nfa"),
-                   "global_fit_reason": res.get("global_fit_reason")}  # fmt: skip
+                   "global_fit_reason": res.get("global_fit_reason"),
+                   "ortho": res.get("ortho"), "ortho_replaced": res.get("ortho_replaced")}  # fmt: skip
             rows[name].append(rec)
             if a.v:
                 e = ("-" if j["error_px"] is None
@@ -808,7 +818,10 @@ def main(argv: list[str] | None = None) -> int:
                       + ("" if res.get("small_nfa") is None
                          else f" small log10 NFA {res['small_nfa']:.1f}")
                       + ("" if res.get("small_peak") is None
-                         else f" peak {res['small_peak']}"), flush=True)  # fmt: skip
+                         else f" peak {res['small_peak']}")
+                      + ("" if res.get("ortho") is None
+                         else f" ortho {res['ortho']}"
+                         + (" (refit)" if res.get("ortho_replaced") else "")), flush=True)  # fmt: skip
     print(f"\n{len(queries)} queries and unrelated pairs, seed {a.seed}; halves by city: "
           f"tuning {', '.join(TUNING)}; checking {', '.join(CHECKING)}")  # fmt: skip
     print("| method | half | registered | false accepts | unrelated accepted | median err px "
