@@ -318,8 +318,11 @@ METHODS: dict[str, dict[str, Any]] = {
     # (georeg.register.ortho_check, register.ortho_check): a dense affine refit replaces the fit
     # when its CV is better and it verifies; a fit that does not verify becomes not found
     "wf_ortho_off": {"pipeline": {"ortho_check": {"mode": "off"}}, "bands": "auto"},
-    "wf_ortho": {"pipeline": {"ortho_check": {"mode": "reject"}}, "bands": "auto"},
-    "wf_ortho_record": {"pipeline": {"ortho_check": {"mode": "record"}}, "bands": "auto"},
+    # the candidate measured (docs/BENCHMARKS.md "Dense check of accepted fits"): reject +
+    # replace; the default since is record without replacement (decisions and fits unchanged)
+    "wf_ortho": {"pipeline": {"ortho_check": {"mode": "reject", "replace": True}}, "bands": "auto"},
+    "wf_ortho_record": {"pipeline": {"ortho_check": {"mode": "record", "replace": False}},
+                        "bands": "auto"},  # fmt: skip
     "wf_small_searched": {"pipeline": {"small": {"enabled": True, "windows": "searched"}},
                           "bands": "auto"},  # fmt: skip
     # the same with the ranking before the Hough vote on plain arrays (register.index.rank:

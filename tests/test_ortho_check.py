@@ -122,7 +122,7 @@ def _reader(ortho: MapImage):
 def test_apply_in_the_fuse_step_rejects_replaces_or_skips(scene):
     q, H, ortho = scene
     read = _reader(ortho)
-    conf = {"ortho_check": {"mode": "reject", "max_inliers": 30}}
+    conf = {"ortho_check": {"mode": "reject", "max_inliers": 30, "replace": True}}
     fused = {"status": "registered", "homography": H.tolist(), "inliers": 8}
     out, rec = oc.apply(q, fused, read, conf)
     assert out["status"] == "registered" and rec["outcome"] == "agrees"
@@ -133,6 +133,11 @@ def test_apply_in_the_fuse_step_rejects_replaces_or_skips(scene):
     # record mode: written, decision unchanged; many inliers: not due; off: nothing
     out, rec = oc.apply(q, wrong, read, {"ortho_check": {"mode": "record"}})
     assert out["status"] == "registered" and rec["outcome"] == "disagrees"
+    assert out["homography"] == wrong["homography"]
+    # the default: record, nothing replaced
+    assert oc.ortho_conf({})["mode"] == "record" and not oc.ortho_conf({})["replace"]
+    out, rec = oc.apply(q, {**fused, "homography": distorted(H).tolist()}, read, {})
+    assert out["homography"] == distorted(H).tolist() and not rec["replaced"]
     out, rec = oc.apply(q, {**wrong, "inliers": 31}, read, conf)
     assert out["status"] == "registered" and rec["outcome"] == "skipped"
     assert oc.apply(q, wrong, read, {"ortho_check": {"mode": "off"}}) == (wrong, None)
@@ -171,7 +176,7 @@ def test_tiny_sentinel2_distorted_fits_are_not_accepted_and_a_right_one_is():
     scenes, qs = bc.build_small_set(5, 11, bc.TINY_SIDES, "tiny_", 600)
     by = {s.name: s for s in scenes}
     seeds = {q.name: 11 + i for i, q in enumerate(qs)}
-    on = bc._deep(bc.workflow_register_conf(), {"ortho_check": {"mode": "reject"}})
+    on = bc._deep(bc.workflow_register_conf(), {"ortho_check": {"mode": "reject", "replace": True}})
     off = bc._deep(bc.workflow_register_conf(), {"ortho_check": {"mode": "off"}})
     out = {}
     for name in ("tiny_s2_abudhabi_103_2.2um", "tiny_s2_saclay_e_103_1.6um",

@@ -15,12 +15,20 @@ The same fraction is measured at four *moved hypotheses* (H moved by ``null_shif
 chance, in place of a significance of one correlation peak (which is not valid: the surface is
 spatially correlated, docs/BENCHMARKS.md "Cross-spectral matching").
 
+In the fuse step (:func:`apply`, fits with at most ``max_inliers`` inliers) the fit is first
+refitted to these tie points (:func:`refit`: :func:`georeg.register.densefit.dense_fit`, affine,
+taken when its blocked CV residual is lower); the refit is checked, and when it does not agree
+the feature fit is checked too (:func:`verify`). A refit that agrees replaces the feature fit
+(``replace``): the support check alone either passes a distorted fit (a band of the footprint
+through its inliers is right) or, made stricter, rejects right fits that are a few pixels off at
+the edges, which the refit corrects (docs/BENCHMARKS.md "Dense check of accepted fits").
+
 Outcome (``ortho_check.outcome`` in registration.json):
 
 - ``agrees``: the supported fraction at H is at least ``min_support`` and ``min_gain`` times the
   best moved hypothesis's;
-- ``disagrees``: not so (a wrong or distorted fit: its tie points sit away from where H puts
-  them, or nowhere);
+- ``disagrees``: not so, for the refit nor the feature fit (a wrong or distorted fit: its tie
+  points sit away from where H puts them, or nowhere);
 - ``skipped``: fewer than ``min_points`` measurable tie points (a footprint mostly off the
   orthophoto or nodata), or the check was not due (``max_inliers``).
 
@@ -42,7 +50,7 @@ from georeg.register.refine import MapImage, cfog, grid_points, measure_shifts
 log = logging.getLogger(__name__)
 
 DEFAULTS: dict[str, Any] = {
-    "mode": "reject",  # off | record (registration.json only) | reject (disagrees -> not_found)
+    "mode": "record",  # off | record (registration.json only) | reject (disagrees -> not_found)
     "max_inliers": 30,  # check fits with at most this many inliers; 0 = every accepted fit
     "map_px": 1.0,  # working pixel size in map pixels (the query resampled to it)
     "max_side": 400,  # ... but the query at most this many working px across
@@ -58,7 +66,7 @@ DEFAULTS: dict[str, Any] = {
     "refit": True,  # refit the fit to dense tie points first (georeg.register.densefit)
     "refit_iterations": 6,  # measure -> affine fit passes of the refit
     "refit_min_gain": 0.1,  # the refit is taken when its blocked CV residual is this much lower
-    "replace": True,  # a refit that agrees replaces the feature fit in the fused result
+    "replace": False,  # a refit that agrees replaces the feature fit in the fused result
 }
 MODES = ("off", "record", "reject")
 
