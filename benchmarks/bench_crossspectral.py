@@ -318,6 +318,15 @@ METHODS: dict[str, dict[str, Any]] = {
     # calibrated null for the CFOG peak")
     "wf_null": {"pipeline": {"small": {"null_test": {"enabled": True}}}, "bands": "auto"},
     "wf_nonull": {"pipeline": {"small": {"null_test": {"enabled": False}}}, "bands": "auto"},
+    # accepted fits checked densely against the orthophoto in the fuse step
+    # (georeg.register.ortho_check, register.ortho_check): a dense affine refit replaces the fit
+    # when its CV is better and it verifies; a fit that does not verify becomes not found
+    "wf_ortho_off": {"pipeline": {"ortho_check": {"mode": "off"}}, "bands": "auto"},
+    # the candidate measured (docs/BENCHMARKS.md "Dense check of accepted fits"): reject +
+    # replace; the default since is record without replacement (decisions and fits unchanged)
+    "wf_ortho": {"pipeline": {"ortho_check": {"mode": "reject", "replace": True}}, "bands": "auto"},
+    "wf_ortho_record": {"pipeline": {"ortho_check": {"mode": "record", "replace": False}},
+                        "bands": "auto"},  # fmt: skip
     "wf_small_searched": {"pipeline": {"small": {"enabled": True, "windows": "searched"}},
                           "bands": "auto"},  # fmt: skip
     # the same with the ranking before the Hough vote on plain arrays (register.index.rank:
@@ -526,6 +535,9 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
     extra: dict[str, Any] = {"small_nfa": min(sw) if sw else None,
                              "small_peak": acc[0] if acc else None,
                              "null_nfa": cn.get("log10_nfa"), "null_accepted": cn.get("accepted")}
+    oc = res.get("ortho_check") or {}
+    extra["ortho"] = oc.get("outcome")
+    extra["ortho_replaced"] = oc.get("replaced")
     if spec.get("refine") is not None and res["status"] == "registered":
         extra.update(run_refine(q, sc_map, np.array(res["homography"]), spec))
     return {
@@ -863,7 +875,8 @@ def main(argv: list[str] | None = None) -> int:
                    "dense_ratio": res.get("dense_ratio"), "refine_model": res.get("refine_model"),
                    "global_fit": res.get("global_fit"), "small_nfa": res.get("small_nfa"),
                    "null_nfa": res.get("null_nfa"), "null_accepted": res.get("null_accepted"),
-                   "global_fit_reason": res.get("global_fit_reason")}  # fmt: skip
+                   "global_fit_reason": res.get("global_fit_reason"),
+                   "ortho": res.get("ortho"), "ortho_replaced": res.get("ortho_replaced")}  # fmt: skip
             rows[name].append(rec)
             if a.v:
                 e = ("-" if j["error_px"] is None
@@ -877,7 +890,10 @@ def main(argv: list[str] | None = None) -> int:
                          else f" peak {res['small_peak']}")
                       + ("" if res.get("null_nfa") is None
                          else f" null log10 p {res['null_nfa']:.1f}"
-                         + (" ACCEPTED" if res.get("null_accepted") else "")), flush=True)  # fmt: skip
+                         + (" ACCEPTED" if res.get("null_accepted") else ""))
+                      + ("" if res.get("ortho") is None
+                         else f" ortho {res['ortho']}"
+                         + (" (refit)" if res.get("ortho_replaced") else "")), flush=True)  # fmt: skip
     print(f"\n{len(queries)} queries and unrelated pairs, seed {a.seed}; halves by city: "
           f"tuning {', '.join(TUNING)}; checking {', '.join(CHECKING)}")  # fmt: skip
     print("| method | half | registered | false accepts | unrelated accepted | median err px "

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from georeg.register import lidar_check, matching
+from georeg.register import lidar_check, matching, ortho_check
 from georeg.register.search import (
     MapSource,
     QueryFeatures,
@@ -316,7 +316,8 @@ def register_query(
         parts, split["dense"] = dense_fallback(u8, full, source, parts, conf, gsd_m, read_window,
                                                seed)  # fmt: skip
     fused = fuse(full, source, parts, conf, gsd_m, seed)
-    return {**fused, "split": split, "parts": parts}
+    fused, orec = ortho_check.apply(u8, fused, read_window, conf)
+    return {**fused, "split": split, "parts": parts, "ortho_check": orec}
 
 
 def run_fuse_parts(
@@ -335,7 +336,8 @@ def run_fuse_parts(
 ) -> dict[str, Any]:
     """Rule fuse_parts: fuse, write geolocation.tif (all NaN when not found) and registration.json.
 
-    ``ortho``: the orthophoto mosaic, read for the dense fallback when no search was accepted."""
+    ``ortho``: the orthophoto mosaic, read for the small-query and dense fallbacks when no search
+    was accepted and for the check of an accepted fit (``georeg.register.ortho_check``)."""
     import json
     from pathlib import Path
 
@@ -376,6 +378,10 @@ def run_fuse_parts(
     t1 = time.perf_counter()
     fused = fuse(full, source, parts, reg_conf, gsd, seed)
     timings["fuse_match"] = time.perf_counter() - t1
+    t1 = time.perf_counter()
+    fused, orec = ortho_check.apply(u8, fused, reader, reg_conf)
+    if orec is not None and orec.get("seconds") is not None:
+        timings["ortho_check"] = time.perf_counter() - t1
     H = None if fused.get("homography") is None else np.array(fused["homography"])
     t1 = time.perf_counter()
     lidar = lidar_check.run_check(u8[0], H, dsm, reg_conf)
@@ -434,6 +440,8 @@ def run_fuse_parts(
     }
     if fused["status"] != "registered":
         reg["reason"] = fused.get("reason")
+    if orec is not None:
+        reg["ortho_check"] = orec
     if lidar is not None:
         reg["lidar_check"] = lidar
     if truth:
