@@ -327,6 +327,9 @@ METHODS: dict[str, dict[str, Any]] = {
     "wf_ortho": {"pipeline": {"ortho_check": {"mode": "reject", "replace": True}}, "bands": "auto"},
     "wf_ortho_record": {"pipeline": {"ortho_check": {"mode": "record", "replace": False}},
                         "bands": "auto"},  # fmt: skip
+    # the ortho check's refit replacement alone (decisions unchanged), then the refinement stage
+    "wf_replace_refined": {"pipeline": {"ortho_check": {"mode": "record", "replace": True}},
+                           "bands": "auto", "refine": {}},  # fmt: skip
     "wf_small_searched": {"pipeline": {"small": {"enabled": True, "windows": "searched"}},
                           "bands": "auto"},  # fmt: skip
     # the same with the ranking before the Hough vote on plain arrays (register.index.rank:
@@ -839,6 +842,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--out", default=str(ROOT / "results" / "benchmark" / "crossspectral.json"))
     ap.add_argument("-v", action="store_true", help="one line per query and method")
+    ap.add_argument("--positives-only", action="store_true",
+                    help="skip the unrelated pairs (for changes that cannot alter a decision)")
     ap.add_argument("--content-truth", action="store_true",
                     help="also judge p90 against the Sentinel-2 content truth (CONTENT_TRUTH; "
                     "cached in results/benchmark/content_truth.json)")  # fmt: skip
@@ -856,6 +861,8 @@ def main(argv: list[str] | None = None) -> int:
     by = {s.name: s for s in scenes}
     if a.content_truth:
         load_content_truth(scenes, ROOT / "results" / "benchmark" / "content_truth.json")
+    if a.positives_only:
+        queries = [q for q in queries if q.truth is not None]
     if a.half != "both" and a.set == "protocol":
         queries = [q for q in queries if half_of(by[q.scene].city) == a.half]
     methods = a.methods.split(",")
