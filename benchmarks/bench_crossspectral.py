@@ -680,6 +680,16 @@ def run_method(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict
 CONTENT_TRUTH: dict[str, np.ndarray] = {}
 
 
+def georef_affine(to_map: Any, w: int, h: int, gsd: float) -> np.ndarray:
+    """The affine src px -> map (x = col gsd, y = -row gsd) of a scene's ``to_map`` (affine)."""
+    src = np.array([[0.0, 0.0], [w - 1.0, 0.0], [0.0, h - 1.0]])
+    dst = to_map(src) * np.array([gsd, -gsd])
+    A = np.linalg.lstsq(np.c_[src, np.ones(3)], dst, rcond=None)[0]
+    T = np.eye(3)
+    T[:2] = A.T
+    return T
+
+
 def content_correction(sc: Scene) -> tuple[np.ndarray, dict[str, Any]]:
     """Map (x, y) -> map (x, y) that moves the geo-referenced truth onto the image content."""
     import yaml
@@ -688,12 +698,7 @@ def content_correction(sc: Scene) -> tuple[np.ndarray, dict[str, Any]]:
 
     rconf = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["refine"]
     band = _stretch(sc.swir["1.6um"])
-    h, w = band.shape
-    src = np.array([[0.0, 0.0], [w - 1.0, 0.0], [0.0, h - 1.0]])
-    dst = sc.to_map(src) * np.array([sc.map_gsd, -sc.map_gsd])
-    A = np.linalg.lstsq(np.c_[src, np.ones(3)], dst, rcond=None)[0]
-    T = np.eye(3)
-    T[:2] = A.T
+    T = georef_affine(sc.to_map, *band.shape[::-1], sc.map_gsd)
     Hf, info = dense_fit(band, T, map_image(sc), {"min_gain": -10.0}, rconf)
     return Hf @ np.linalg.inv(T), {k: info.get(k) for k in ("tie_points", "inliers", "cover")}
 

@@ -178,12 +178,8 @@ def truth_check() -> None:
                 # same-date: the map of the query's own date = the other scene's map
                 band = bc._stretch(q_sc.swir["1.6um"])
                 h, w = band.shape
-                src = np.array([[0.0, 0.0], [w - 1.0, 0.0], [0.0, h - 1.0]])
                 to_map = q_sc.to_map if label == "cross-date" else _same_date_to_map(city, rev)
-                dst = to_map(src) * np.array([m_sc.map_gsd, -m_sc.map_gsd])
-                A = np.linalg.lstsq(np.c_[src, np.ones(3)], dst, rcond=None)[0]
-                T = np.eye(3)
-                T[:2] = A.T
+                T = bc.georef_affine(to_map, w, h, m_sc.map_gsd)
                 Hf, info = dense_fit(band, T, map_image(m_sc), {"min_gain": -10.0}, rconf)
                 xf, yf = map_xy(Hf, w, h)
                 xt, yt = map_xy(T, w, h)

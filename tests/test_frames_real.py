@@ -14,10 +14,10 @@ table are checked too.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 
+import benchmark_module
 import numpy as np
 import pytest
 
@@ -32,10 +32,7 @@ pytestmark = [
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("bench_frames", REPO / "benchmarks" / "bench_frames.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return benchmark_module.load("bench_frames")
 
 
 @pytest.fixture(scope="module")

@@ -9,10 +9,9 @@ development set (``bench_crossspectral.py --set tiny``) and a right one (skipped
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
+import benchmark_module
 import cv2
 import numpy as np
 import pytest
@@ -150,13 +149,7 @@ def test_apply_in_the_fuse_step_rejects_replaces_or_skips(scene):
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location(
-        "bench_crossspectral", ROOT / "benchmarks" / "bench_crossspectral.py"
-    )
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["bench_crossspectral"] = mod
-    spec.loader.exec_module(mod)  # type: ignore[union-attr]
-    return mod
+    return benchmark_module.load("bench_crossspectral")
 
 
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason="../shared/data/swir_dates absent")

@@ -5,11 +5,10 @@ is rejected."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
 from pathlib import Path
 
+import benchmark_module
 import numpy as np
 import pytest
 
@@ -70,13 +69,7 @@ def test_small_conf_defaults_and_override():
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location(
-        "bench_crossspectral", ROOT / "benchmarks" / "bench_crossspectral.py"
-    )
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["bench_crossspectral"] = mod
-    spec.loader.exec_module(mod)  # type: ignore[union-attr]
-    return mod
+    return benchmark_module.load("bench_crossspectral")
 
 
 needs_data = pytest.mark.skipif(not DATA.is_dir(), reason="../shared/data/swir_dates absent")

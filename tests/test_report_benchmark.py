@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import csv
-import importlib.util
-import sys
 from pathlib import Path
 
+import benchmark_module
 import numpy as np
 import pytest
 
@@ -14,11 +13,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("bench_run", REPO / "benchmarks" / "run.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["bench_run"] = mod
-    spec.loader.exec_module(mod)  # type: ignore[union-attr]
-    return mod
+    return benchmark_module.load("run", "bench_run")
 
 
 def test_warp_moves_band_and_truth_together() -> None:
