@@ -494,8 +494,10 @@ def run_refine(q: Query, sc_map: Scene, H: np.ndarray, spec: dict[str, Any]) -> 
     conf = _deep(workflow_refine_conf(), spec["refine"])
     x, y, info = refine(band, H, map_image(sc_map), conf)
     gf = info.get("global_fit") or {}
+    df = info.get("direct_fit") or {}
     return {"xy": (x, y), "refine_model": info["model"],
-            "global_fit": gf.get("accepted"), "global_fit_reason": gf.get("reason")}  # fmt: skip
+            "global_fit": gf.get("accepted"), "global_fit_reason": gf.get("reason"),
+            "direct_fit": df.get("accepted"), "direct_fit_reason": df.get("reason")}  # fmt: skip
 
 
 def plain_window_reader(sc: Scene) -> Any:

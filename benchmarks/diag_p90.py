@@ -249,7 +249,8 @@ def refine_variants(paths: list[str], variants: dict[str, dict], which: str = "p
                 worse = j["p90_content_px"] > base["p90_content_px"] + 0.25
                 stats.setdefault((name, half), []).append((j["p90_px"], j["p90_content_px"], worse))
                 cells.append(f"{name} {j['p90_px']:5.2f}/{j['p90_content_px']:5.2f}"
-                             f"{' WORSE' if worse else ''} gf {out.get('global_fit')}")  # fmt: skip
+                             f"{' WORSE' if worse else ''} gf {out.get('global_fit')} "
+                             f"df {out.get('direct_fit')}")  # fmt: skip
             print(f"{half[:5]} {r['query'][:32]:32s} " + " | ".join(cells), flush=True)
     print("| variant | half | p90 <= 2 px | p90 <= 2 px (content truth) | median p90 (content) "
           "| worse than the feature homography |")  # fmt: skip
@@ -303,7 +304,8 @@ if __name__ == "__main__":
     elif a.cmd == "variants":  # arg: comma-separated pickles
         refine_variants(a.arg.split(","), {
             "default": {},
-            "block_window": {"global_fit": {"cv_block_windows": 1.0}},
+            "direct": {"direct_fit": {"enabled": True}},
+            "direct_no_refit": {"direct_fit": {"enabled": True, "when": "no_refit"}},
         }, which=a.set)
     elif a.cmd == "analyse":
         analyse(a.arg, [], which=a.set)

@@ -124,10 +124,14 @@ def test_local_model_fades_to_the_global_fit_where_no_tie_point_supports_it(pair
         res[zero] = (np.hypot(x - pair["truth"][0], y - pair["truth"][1]), info)
     e, info = res[4.0]
     assert info["support"]["none_fraction"] > 0.15
-    # supported lines are corrected as before; unsupported lines end at the global fit
+    # supported lines are corrected as before; unsupported lines end at the global fit (the
+    # homography under the local correction: the refits may have moved it from pair["H"])
     assert np.median(e[:180]) < 0.5 * np.median(e0[:180])
-    assert np.allclose(e[260:], e0[260:], atol=1e-6)
-    assert np.percentile(e[230:], 90) <= np.percentile(e0[230:], 90) + 0.05
+    xg, yg = apply_h(np.array(info["homography"]), np.arange(220.0)[None, :],
+                     np.arange(300.0)[:, None])  # fmt: skip
+    eg = np.hypot(xg - pair["truth"][0], yg - pair["truth"][1])
+    assert np.allclose(e[260:], eg[260:], atol=1e-6)
+    assert np.percentile(e[230:], 90) <= np.percentile(eg[230:], 90) + 0.05
     # without the taper the per-line model extrapolates there (measured p90 5.5 px vs 0.9)
     e_free = res[0.0][0]
     assert np.percentile(e[200:], 90) < 0.5 * np.percentile(e_free[200:], 90)
