@@ -318,6 +318,9 @@ METHODS: dict[str, dict[str, Any]] = {
     # calibrated null for the CFOG peak")
     "wf_null": {"pipeline": {"small": {"null_test": {"enabled": True}}}, "bands": "auto"},
     "wf_nonull": {"pipeline": {"small": {"null_test": {"enabled": False}}}, "bands": "auto"},
+    # a small query's feature fit checked by the same scan, replaced on a conflict (the default
+    # since session 8; docs/BENCHMARKS.md "The null scan as a check of small feature fits")
+    "wf_nocheck": {"pipeline": {"small": {"null_test": {"check": False}}}, "bands": "auto"},
     # accepted fits checked densely against the orthophoto in the fuse step
     # (georeg.register.ortho_check, register.ortho_check): a dense affine refit replaces the fit
     # when its CV is better and it verifies; a fit that does not verify becomes not found
@@ -540,6 +543,8 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
     extra: dict[str, Any] = {"small_nfa": min(sw) if sw else None,
                              "small_peak": acc[0] if acc else None,
                              "null_nfa": cn.get("log10_nfa"), "null_accepted": cn.get("accepted")}
+    nk = res.get("null_check") or {}
+    extra["null_check"] = nk.get("outcome")
     oc = res.get("ortho_check") or {}
     extra["ortho"] = oc.get("outcome")
     extra["ortho_replaced"] = oc.get("replaced")
@@ -890,7 +895,8 @@ def main(argv: list[str] | None = None) -> int:
                    "global_fit": res.get("global_fit"), "small_nfa": res.get("small_nfa"),
                    "null_nfa": res.get("null_nfa"), "null_accepted": res.get("null_accepted"),
                    "global_fit_reason": res.get("global_fit_reason"),
-                   "ortho": res.get("ortho"), "ortho_replaced": res.get("ortho_replaced")}  # fmt: skip
+                   "ortho": res.get("ortho"), "ortho_replaced": res.get("ortho_replaced"),
+                   "null_check": res.get("null_check")}  # fmt: skip
             rows[name].append(rec)
             if a.v:
                 e = ("-" if j["error_px"] is None
@@ -905,6 +911,8 @@ def main(argv: list[str] | None = None) -> int:
                       + ("" if res.get("null_nfa") is None
                          else f" null log10 p {res['null_nfa']:.1f}"
                          + (" ACCEPTED" if res.get("null_accepted") else ""))
+                      + ("" if res.get("null_check") is None
+                         else f" null check {res['null_check']}")
                       + ("" if res.get("ortho") is None
                          else f" ortho {res['ortho']}"
                          + (" (refit)" if res.get("ortho_replaced") else "")), flush=True)  # fmt: skip

@@ -306,6 +306,8 @@ if __name__ == "__main__":
             "default": {},
             "direct": {"direct_fit": {"enabled": True}},
             "direct_no_refit": {"direct_fit": {"enabled": True, "when": "no_refit"}},
+            "win16": {"window_px": 16, "grid_step_px": 6},
+            "win24": {"window_px": 24, "grid_step_px": 9},
         }, which=a.set)
     elif a.cmd == "analyse":
         analyse(a.arg, [], which=a.set)

@@ -279,3 +279,69 @@ def test_null_register_accepts_a_synthetic_crop_records_the_evidence_and_skips_l
     assert rec["log10_nfa"] < -3.0 and rec["null_blocks"] >= 30
     small = null_register(q, g, src, {"small": {"null_test": {"max_map_px": 1000}}}, read)
     assert not small["accepted"] and "too large" in small["reason"]
+
+
+def test_null_check_replaces_a_feature_fit_the_scan_contradicts_and_keeps_one_it_confirms():
+    """``small.null_check``: a small query's fused feature fit is compared with the whole-map
+    CFOG scan. The true fit agrees and is kept; a fit 12 map px off conflicts with the scan's
+    significant peak and is replaced by it (within a map pixel of the truth); switched off, or
+    when the registration is the scan's own, nothing is run."""
+    import cv2
+
+    from georeg.register.search import MapSource
+    from georeg.register.small import null_check
+
+    g = 10.0
+    m = _field(5, (300, 300))
+    A = cv2.getRotationMatrix2D((150.0, 170.0), -40.0, 1.0)  # query centre = map px (150, 170)
+    A[:, 2] += (30.0 - 150.0, 30.0 - 170.0)
+    q = cv2.warpAffine(m.astype(np.float32), A, (61, 61), flags=cv2.INTER_LINEAR)
+    q = np.clip(q, 1, 255).astype(np.uint8)
+    src = MapSource(np.array([[0.0, 0.0], [299 * g, -299 * g]]), np.zeros((2, 128), np.float32), g)
+
+    def read(b):
+        c0, c1 = max(0, math.floor(b[0] / g)), min(300, math.ceil(b[2] / g) + 1)
+        r0, r1 = max(0, math.floor(-b[3] / g)), min(300, math.ceil(-b[1] / g) + 1)
+        win = m[r0:r1, c0:c1].astype(np.float32)
+        return win, np.array([[g, 0, c0 * g], [0, -g, -r0 * g], [0, 0, 1.0]])
+
+    # the truth: query px -> map px (inverse of A) -> map x = col g, y = -row g
+    Ai = cv2.invertAffineTransform(A)
+    T = np.diag([g, -g, 1.0]) @ np.vstack([Ai, [0, 0, 1.0]])
+    conf = {"small": {"null_test": {"enabled": True}}}
+    fused = {"status": "registered", "homography": T.tolist(), "inliers": 9}
+    out, rec = null_check(q, fused, src, conf, g, read)
+    assert rec["outcome"] == "agrees" and not rec["replaced"] and out is fused
+    off = np.array([[1, 0, 12 * g], [0, 1, 0], [0, 0, 1.0]]) @ T  # 12 map px east
+    out, rec = null_check(q, {**fused, "homography": off.tolist()}, src, conf, g, read)
+    assert rec["outcome"] == "conflict" and rec["replaced"], rec
+    assert rec["distance_corr_px"] > rec["conflict_px"]
+    c = matching.apply_h(np.array(out["homography"]), np.array([[30.0, 30.0]]))[0]
+    assert np.hypot(c[0] / g - 150.0, -c[1] / g - 170.0) < 1.0
+    assert out["feature_homography"] == off.tolist()
+    no = {"small": {"null_test": {"enabled": True, "check": False}}}
+    assert null_check(q, fused, src, no, g, read) == (fused, None)
+    own = {"cfog_null": {"accepted": True}}
+    assert null_check(q, fused, src, conf, g, read, own) == (fused, None)
+
+
+@needs_data
+def test_null_check_turns_a_distorted_tiny_feature_fit_into_the_scans_true_place():
+    """A tiny query of a tuning city (``--set tiny``, 79 px) whose 12-inlier feature fit is
+    7.5 map px off at its centre (a false accept before the check): the whole-map CFOG scan's
+    significant peak is 5 correlation px away, so the workflow default replaces the fit and the
+    query ends within the success bound of the truth."""
+    import cv2
+
+    bc = _bench()
+    cv2.setNumThreads(1)
+    scenes, qs = bc.build_small_set(5, 11, bc.TINY_SIDES, "tiny_", 600)
+    by = {s.name: s for s in scenes}
+    qi, q = next((i, x) for i, x in enumerate(qs) if x.name == "tiny_s2_saclay_e_103_1.6um")
+    sc = by[q.map_scene]
+    res = bc.run_method(q, sc, bc.METHODS["wf_default"], 11 + qi)
+    assert res["null_check"] == "conflict"
+    j = bc.judge(q, sc, res)
+    assert j["outcome"] == "success" and j["error_px"] < 3.0, j
+    before = bc.run_method(q, sc, bc.METHODS["wf_nocheck"], 11 + qi)
+    assert bc.judge(q, sc, before)["outcome"] == "false_accept"  # what the check corrects

@@ -40,6 +40,8 @@ NULL_DEFAULTS: dict[str, Any] = {
     "log_nfa_max": -3.0,
     "fine_step_deg": 1.0,
     "fine_range_deg": 5.0,
+    "check": True,  # a small query's feature fit checked by the scan (small.null_check)
+    "conflict_px": 3.0,  # ... replaced when the significant peak is this far (correlation px)
 }
 
 

@@ -24,7 +24,7 @@ from georeg.register.search import (
     search_part,
     verify,
 )
-from georeg.register.small import small_fallback
+from georeg.register.small import null_check, small_fallback
 
 log = logging.getLogger(__name__)
 
@@ -316,8 +316,9 @@ def register_query(
         parts, split["dense"] = dense_fallback(u8, full, source, parts, conf, gsd_m, read_window,
                                                seed)  # fmt: skip
     fused = fuse(full, source, parts, conf, gsd_m, seed)
+    fused, nrec = null_check(u8, fused, source, conf, gsd_m, read_window, split.get("small"))
     fused, orec = ortho_check.apply(u8, fused, read_window, conf)
-    return {**fused, "split": split, "parts": parts, "ortho_check": orec}
+    return {**fused, "split": split, "parts": parts, "null_check": nrec, "ortho_check": orec}
 
 
 def run_fuse_parts(
@@ -378,6 +379,10 @@ def run_fuse_parts(
     t1 = time.perf_counter()
     fused = fuse(full, source, parts, reg_conf, gsd, seed)
     timings["fuse_match"] = time.perf_counter() - t1
+    t1 = time.perf_counter()
+    fused, nrec = null_check(u8, fused, source, reg_conf, gsd, reader, split.get("small"))
+    if nrec is not None:
+        timings["null_check"] = time.perf_counter() - t1
     t1 = time.perf_counter()
     fused, orec = ortho_check.apply(u8, fused, reader, reg_conf)
     if orec is not None and orec.get("seconds") is not None:
@@ -440,6 +445,8 @@ def run_fuse_parts(
     }
     if fused["status"] != "registered":
         reg["reason"] = fused.get("reason")
+    if nrec is not None:
+        reg["null_check"] = nrec
     if orec is not None:
         reg["ortho_check"] = orec
     if lidar is not None:

@@ -20,6 +20,7 @@ is every rotation step x every disc-sized place of the window x every window sea
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from typing import Any
@@ -30,6 +31,8 @@ from georeg.index.features import detect_and_describe, merged_conf, resample
 from georeg.register import acceptance, crossspectral, matching
 from georeg.register.dense_null import null_conf
 from georeg.register.search import MapSource, QueryFeatures, query_features
+
+log = logging.getLogger(__name__)
 
 SMALL_DEFAULTS: dict[str, Any] = {
     "enabled": True,
@@ -372,6 +375,7 @@ def null_register(
         return rec
     gray, A = got
     m_px = float(np.sqrt(abs(np.linalg.det(A[:2, :2]))))
+    rec["map_px"] = m_px
     q0 = u8 if u8.ndim == 2 else u8[0]
     factor = float(q_gsd) / m_px
     est = gray.size * min(1.0, float(sc["max_side"]) / (max(h, w) * factor)) ** 2
@@ -399,3 +403,48 @@ def null_register(
         reasons += plaus.get("reasons", [])
     rec.update(accepted=not reasons, reason="; ".join(reasons), seconds=time.perf_counter() - t0)
     return rec
+
+
+def null_check(
+    u8: np.ndarray,
+    fused: dict[str, Any],
+    source: MapSource,
+    conf: dict[str, Any],
+    gsd_m: float | None,
+    read_window: Any,
+    split_small: dict[str, Any] | None = None,
+) -> tuple[dict[str, Any], dict[str, Any] | None]:
+    """A small query registered by its features, checked by the calibrated CFOG null scan
+    (``register.small.null_test.check``): when the scan alone would accept a place more than
+    ``conflict_px`` correlation px from the fit's (its peak is located to about one), the two
+    detectors disagree and the calibrated one wins: the fused homography becomes the scan's.
+    Returns the (possibly changed) fused result and the record (None when not run)."""
+    sc = small_conf(conf)
+    nc = null_conf(sc)
+    h, w = u8.shape[-2:]
+    if (not nc["enabled"] or not nc.get("check", True) or fused.get("homography") is None
+            or not applies(w, h, conf) or not gsd_m or read_window is None):  # fmt: skip
+        return fused, None
+    if ((split_small or {}).get("cfog_null") or {}).get("accepted"):
+        return fused, None  # the registration is the scan's own
+    got = null_register(u8, gsd_m, source, conf, read_window)
+    rec: dict[str, Any] = {k: v for k, v in got.items() if k != "homography"}
+    rec["replaced"] = False
+    if not got["accepted"]:
+        rec["outcome"] = "no significant peak"
+        return fused, rec
+    c = np.array([(w - 1) / 2.0, (h - 1) / 2.0, 1.0])
+    a = np.asarray(fused["homography"], float) @ c
+    b = np.asarray(got["homography"], float) @ c
+    d_map = float(np.hypot(*(a[:2] / a[2] - b[:2] / b[2])))
+    d_corr = d_map / float(got["map_px"]) * float(got["shrink"])
+    rec.update(distance_corr_px=round(d_corr, 2), conflict_px=float(nc["conflict_px"]))
+    if d_corr <= float(nc["conflict_px"]):
+        rec["outcome"] = "agrees"
+        return fused, rec
+    rec.update(outcome="conflict", replaced=True)
+    log.info("CFOG null check: the scan's peak (log10 p %.1f) is %.1f correlation px from the "
+             "feature fit: the fit is replaced", got["log10_p"], d_corr)  # fmt: skip
+    out = {**fused, "homography": got["homography"], "feature_homography": fused["homography"],
+           "method": "small_cfog_null"}  # fmt: skip
+    return out, rec
