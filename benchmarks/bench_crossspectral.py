@@ -493,8 +493,9 @@ def run_refine(q: Query, sc_map: Scene, H: np.ndarray, spec: dict[str, Any]) -> 
     from georeg.register.refine import refine
 
     band = query_stack(q, spec.get("bands", 1))
-    band = band[0] if band.ndim == 3 else band
     conf = _deep(workflow_refine_conf(), spec["refine"])
+    if band.ndim == 3 and not conf.get("pooled_bands", True):  # the primary band only
+        band = band[0]
     x, y, info = refine(band, H, map_image(sc_map), conf)
     gf = info.get("global_fit") or {}
     df = info.get("direct_fit") or {}

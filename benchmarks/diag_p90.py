@@ -305,9 +305,7 @@ if __name__ == "__main__":
         refine_variants(a.arg.split(","), {
             "default": {},
             "direct": {"direct_fit": {"enabled": True}},
-            "direct_no_refit": {"direct_fit": {"enabled": True, "when": "no_refit"}},
-            "win16": {"window_px": 16, "grid_step_px": 6},
-            "win24": {"window_px": 24, "grid_step_px": 9},
+            "primary_band": {"pooled_bands": False},
         }, which=a.set)
     elif a.cmd == "analyse":
         analyse(a.arg, [], which=a.set)

@@ -184,6 +184,7 @@ def dense_fit(
         consistent,
         grid_points,
         measure_shifts,
+        query_cfog,
         window_centroid,
     )
     from georeg.register.refine import merged as refine_merged
@@ -197,9 +198,8 @@ def dense_fit(
         c["model"] = "affine"
     rc = refine_merged(refine_conf)
     H0 = np.asarray(H, np.float64)
-    h, w = band.shape
-    qvalid = (band > 0) if band.dtype == np.uint8 else np.isfinite(band)
-    qf = cfog(band.astype(np.float32), qvalid, int(rc["orientations"]), float(rc["cfog_sigma_px"]))
+    h, w = band.shape[-2:]
+    qf, qvalid = query_cfog(band, int(rc["orientations"]), float(rc["cfog_sigma_px"]))
     win, step, search = int(rc["window_px"]), int(rc["grid_step_px"]), int(rc["search_px"])
     centres = grid_points(w, h, step, win)
     pts = window_centroid(centres, w, h, win)

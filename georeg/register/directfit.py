@@ -190,25 +190,25 @@ def direct_fit(
 
     Returns the homography to use (the fit, or ``H`` when the guard keeps it) and a report."""
     from georeg.register.densefit import _px_scale
-    from georeg.register.refine import cfog
     from georeg.register.refine import merged as refine_merged
+    from georeg.register.refine import query_cfog
 
     t0 = time.perf_counter()
     c = merged(conf)
     rc = refine_merged(refine_conf)
     orient = int(rc["orientations"])
     H0 = np.asarray(H, np.float64)
-    h, w = band.shape
-    qvalid = (band > 0) if band.dtype == np.uint8 else np.isfinite(band)
+    h, w = band.shape[-2:]
+    stack = band if band.ndim == 3 else band[None]
+    qvalid = np.all((stack > 0) if stack.dtype == np.uint8 else np.isfinite(stack), axis=0)
     qgood = _good(qvalid)
-    img = np.where(qvalid, band, 0).astype(np.float32)
     px = _px_scale(H0, w, h)
     info: dict[str, Any] = {"enabled": True, "accepted": False, "model": str(c["model"])}
     if qvalid.sum() > int(c["max_pixels"]):
         info.update(reason=f"{int(qvalid.sum())} valid pixels > max_pixels {c['max_pixels']}",
                     seconds=time.perf_counter() - t0)  # fmt: skip
         return H0, info
-    qfs = [cfog(img, qvalid, orient, float(s)) for s in c["sigmas_px"]]
+    qfs = [query_cfog(band, orient, float(s))[0] for s in c["sigmas_px"]]
     cell = max(1, int(c["cell_px"]))
     rr, cc = np.mgrid[:h, :w]
     board = ((rr // cell + cc // cell) % 2).astype(bool)
