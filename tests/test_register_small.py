@@ -249,7 +249,8 @@ def test_cfog_null_registers_a_tiny_sentinel2_query_and_rejects_another_city():
 def test_null_register_accepts_a_synthetic_crop_records_the_evidence_and_skips_large_maps():
     """``small.null_register`` on plain arrays (map x = col g, y = -row g): a rotated crop of
     the map is accepted with its homography within a map pixel of the truth and the evidence in
-    the record; with ``max_map_px`` below the map's size the scan is not run."""
+    the record; with ``max_map_px`` below the map's size the tiled scan finds the same place, and
+    with ``max_tiled_map_px`` below it too, the scan is not run."""
     import cv2
 
     from georeg.register.search import MapSource
@@ -277,5 +278,11 @@ def test_null_register_accepts_a_synthetic_crop_records_the_evidence_and_skips_l
     for k in ("score", "null_max", "gap", "tail_scale", "null_blocks", "log10_p", "statistic"):
         assert k in rec
     assert rec["log10_nfa"] < -3.0 and rec["null_blocks"] >= 30
-    small = null_register(q, g, src, {"small": {"null_test": {"max_map_px": 1000}}}, read)
-    assert not small["accepted"] and "too large" in small["reason"]
+    # above max_map_px: the tiled scan (dense_tiled) gives the same place; above its cap, none
+    tiled = null_register(q, g, src, {"small": {"null_test": {"max_map_px": 1000}}}, read)
+    assert tiled["accepted"] and tiled["scan"] == "tiled" and rec["scan"] == "whole", tiled
+    ct = matching.apply_h(np.array(tiled["homography"]), np.array([[30.0, 30.0]]))[0]
+    assert np.hypot(*(ct - c)) < 0.2 * g
+    capped = {"small": {"null_test": {"max_map_px": 1000, "max_tiled_map_px": 1000}}}
+    small = null_register(q, g, src, capped, read)
+    assert not small["accepted"] and "too large for the tiled scan" in small["reason"]

@@ -348,6 +348,7 @@ def null_register(
     = the CFOG peak's, ``inliers`` 0) with the evidence (statistic, p-value, null size)."""
     from georeg.register.dense import window_u8
     from georeg.register.dense_null import fine_pose, scan
+    from georeg.register.dense_tiled import tiled_scan
 
     t0 = time.perf_counter()
     sc = small_conf(conf)
@@ -362,29 +363,37 @@ def null_register(
     # the map as the correlation sees it: the query shrunk to max_side px
     per_m = min(1.0 / source.gsd_m, float(sc["max_side"]) / (max(h, w) * float(q_gsd)))
     est = (b[2] - b[0]) * (b[3] - b[1]) * per_m**2
-    if est > float(nc["max_map_px"]):
-        rec.update(reason=f"map too large for the scan ({est:.0f} > {nc['max_map_px']} px)",
-                   seconds=time.perf_counter() - t0)  # fmt: skip
-        return rec
-    got = read_window(b)
-    if got is None:
+    q0 = u8 if u8.ndim == 2 else u8[0]
+    got = None if est > float(nc["max_map_px"]) else read_window(b)
+    if got is not None:
+        gray, A = got
+        m_px = float(np.sqrt(abs(np.linalg.det(A[:2, :2]))))
+        factor = float(q_gsd) / m_px
+        est = gray.size * min(1.0, float(sc["max_side"]) / (max(h, w) * factor)) ** 2
+        if est > float(nc["max_map_px"]):  # the orthophoto is finer than the features
+            got = gray = None
+    elif est <= float(nc["max_map_px"]):
         rec.update(reason="no orthophoto", seconds=time.perf_counter() - t0)
         return rec
-    gray, A = got
-    m_px = float(np.sqrt(abs(np.linalg.det(A[:2, :2]))))
-    q0 = u8 if u8.ndim == 2 else u8[0]
-    factor = float(q_gsd) / m_px
-    est = gray.size * min(1.0, float(sc["max_side"]) / (max(h, w) * factor)) ** 2
-    if est > float(nc["max_map_px"]):  # the orthophoto is finer than the features
-        rec.update(reason=f"map too large for the scan ({est:.0f} > {nc['max_map_px']} px)",
-                   seconds=time.perf_counter() - t0)  # fmt: skip
-        return rec
-    m_u8 = window_u8(gray)
-    r = scan(q0, factor, m_u8, float(sc["step_deg"]), int(sc["max_side"]), int(nc["block_px"]),
-             float(nc["exclude_px"]), int(nc["tail_k"]))  # fmt: skip
-    if r is None:
-        rec.update(reason="no overlap or too few null blocks", seconds=time.perf_counter() - t0)
-        return rec
+    if got is None:  # larger than one FFT: tile by tile (dense_tiled), up to max_tiled_map_px
+        r = tiled_scan(q0, float(q_gsd), b, read_window, source.gsd_m, float(sc["step_deg"]),
+                       int(sc["max_side"]), int(nc["block_px"]), float(nc["exclude_px"]),
+                       int(nc["tail_k"]), int(nc["tile_px"]), float(nc["max_tiled_map_px"]))  # fmt: skip
+        rec["scan"] = "tiled"
+        if "S" not in r:
+            rec.update({k: v for k, v in r.items() if k in ("tiles", "map_px")})
+            rec.update(reason=r["reason"], seconds=time.perf_counter() - t0)
+            return rec
+        A, m_u8, factor = r.pop("A"), r.pop("m_u8"), r.pop("factor")
+    else:
+        rec["scan"] = "whole"
+        m_u8 = window_u8(gray)
+        r = scan(q0, factor, m_u8, float(sc["step_deg"]), int(sc["max_side"]),
+                 int(nc["block_px"]), float(nc["exclude_px"]), int(nc["tail_k"]))  # fmt: skip
+        if r is None:
+            rec.update(reason="no overlap or too few null blocks",
+                       seconds=time.perf_counter() - t0)  # fmt: skip
+            return rec
     rec.update({k: v for k, v in r.items() if k != "S"})
     reasons = []
     if not r["log10_nfa"] < float(nc["log_nfa_max"]):
