@@ -119,3 +119,34 @@ def test_tiled_scan_refuses_above_its_cap_and_with_tiles_smaller_than_the_query(
     assert "S" not in capped and "too large for the tiled scan" in capped["reason"]
     tiny = tiled_scan(q, G, b, _reader(m), G, tile_px=120)
     assert "S" not in tiny and "too small for the query" in tiny["reason"]
+
+
+def test_tiled_scan_through_the_workflows_orthophoto_reader(tmp_path):
+    """The workflow's GeoTIFF window reader (``fuse.ortho_window_reader``: rasterio windows,
+    pixel-centre affine): ``null_register`` forced to tiles (``max_map_px`` 1000, ``tile_px``
+    300) gives the whole-map scan's peak, score and log10 p on a 500 x 700 px orthophoto."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    from georeg.register.fuse import ortho_window_reader
+
+    m = _field(11, (500, 700), 5.0)
+    path = tmp_path / "ortho.tif"
+    with rasterio.open(path, "w", driver="GTiff", width=700, height=500, count=1, dtype="uint8",
+                       transform=from_origin(0.0, 0.0, G, G), crs="EPSG:32633") as ds:  # fmt: skip
+        ds.write(m, 1)
+    read = ortho_window_reader(str(path))
+    q = _query(m, (420.0, 180.0), 120.0, 1.0, 61, seed=5)
+    src = MapSource(np.array([[0.5 * G, -0.5 * G], [699.5 * G, -499.5 * G]]),
+                    np.zeros((2, 128), np.float32), G)  # fmt: skip
+    whole = null_register(q, G, src, {"small": {"null_test": {"enabled": True}}}, read)
+    conf = {"small": {"null_test": {"max_map_px": 1000, "tile_px": 300}}}
+    tiled = null_register(q, G, src, conf, read)
+    assert whole["scan"] == "whole" and tiled["scan"] == "tiled" and tiled["tiles"] > 4
+    assert whole["accepted"] and tiled["accepted"], (whole, tiled)
+    cw = matching.apply_h(np.array(whole["homography"]), np.array([[30.0, 30.0]]))[0]
+    ct = matching.apply_h(np.array(tiled["homography"]), np.array([[30.0, 30.0]]))[0]
+    assert np.hypot(cw[0] / G - 420.5, -cw[1] / G - 180.5) < 1.0  # pixel centres at +0.5
+    assert np.hypot(*(ct - cw)) < 0.05 * G
+    assert abs(tiled["log10_p"] - whole["log10_p"]) < 1e-3 * abs(whole["log10_p"])
+    assert abs(tiled["score"] - whole["score"]) < 1e-5 and tiled["null_blocks"] == whole["null_blocks"]

@@ -18,6 +18,9 @@ blocks) was measured too: valid but with far less power (its fit is driven by th
 spread overstates the tail's). Developed on the tuning cities only
 (``benchmarks/diag_small_null.py``, docs/BENCHMARKS.md "A calibrated null for the CFOG peak").
 
+Maps too large for one FFT are scanned tile by tile with the same statistic
+(``georeg.register.dense_tiled``, ``top_spacing`` shared).
+
 An accepted peak is then a similarity at the known GSD: refined by a finer rotation search and a
 sub-pixel peak around it (``fine_pose``).
 """

@@ -83,8 +83,8 @@ class _Grid:
 
 
 def _probe(read_window: Any, bounds: tuple[float, ...], side: float) -> tuple[np.ndarray, Any]:
-    """The affine of a small window of the orthophoto (``side`` map units), tried on a 5 x 5
-    grid of places in ``bounds``; None when none is read."""
+    """The affine (and dtype) of a small window of the orthophoto (``side`` map units each way
+    from a place), tried at 5 x 5 places in ``bounds``; (None, None) when none is read."""
     for fy in (0.5, 0.3, 0.7, 0.1, 0.9):
         for fx in (0.5, 0.3, 0.7, 0.1, 0.9):
             x = bounds[0] + fx * (bounds[2] - bounds[0])
@@ -121,7 +121,7 @@ def tiled_scan(
     (``S`` = query px -> px of the winning tile, ``A`` = its window -> map affine, ``m_u8`` =
     the tile stretched, ``factor`` = query GSD / orthophoto px) plus ``tiles``, ``map_px``
     (correlation px of the map), ``levels``; or ``reason`` (and no ``S``) when not run."""
-    A0, _ = _probe(read_window, bounds, probe_side * 32)
+    A0, _ = _probe(read_window, bounds, probe_side * 64)
     if A0 is None:
         return {"reason": "no orthophoto"}
     grid = _Grid(A0)

@@ -345,7 +345,11 @@ def null_register(
     null (``georeg.register.dense_null``, ``register.small.null_test``); an accepted peak becomes a
     similarity at the known GSD refined by ``dense_null.fine_pose`` and checked for
     plausibility. A record like a search part's (``accepted``, ``homography``, ``log10_nfa``
-    = the CFOG peak's, ``inliers`` 0) with the evidence (statistic, p-value, null size)."""
+    = the CFOG peak's, ``inliers`` 0) with the evidence (statistic, p-value, null size).
+
+    The map is read and correlated at once up to ``max_map_px`` correlation px (``scan:
+    whole``), tile by tile above it (``georeg.register.dense_tiled``, ``tile_px``; ``scan:
+    tiled``, ``tiles``) up to ``max_tiled_map_px``, and not at all beyond (``reason``)."""
     from georeg.register.dense import window_u8
     from georeg.register.dense_null import fine_pose, scan
     from georeg.register.dense_tiled import tiled_scan
