@@ -111,7 +111,7 @@ def test_null_register_finds_a_small_query_in_a_map_beyond_one_fft_and_reads_onl
     assert ru["scan"] == "tiled" and not ru["accepted"] and ru["log10_p"] > -3.0, ru
 
 
-def test_tiled_scan_refuses_above_its_cap_and_with_tiles_smaller_than_the_query():
+def test_tiled_scan_refuses_above_its_cap_with_tiles_smaller_than_the_query_or_a_rotated_grid():
     m = _field(9, (400, 400), 4.0)
     q = _query(m, (200.0, 200.0), 10.0, 1.0, 61)
     b = _bounds(m, 450.0)
@@ -119,6 +119,15 @@ def test_tiled_scan_refuses_above_its_cap_and_with_tiles_smaller_than_the_query(
     assert "S" not in capped and "too large for the tiled scan" in capped["reason"]
     tiny = tiled_scan(q, G, b, _reader(m), G, tile_px=120)
     assert "S" not in tiny and "too small for the query" in tiny["reason"]
+    read = _reader(m)
+
+    def rotated(bb):  # a reader whose windows are not north-up
+        gray, A = read(bb)
+        return gray, A @ np.array([[0.99, -0.14, 0], [0.14, 0.99, 0], [0, 0, 1.0]])
+
+    src = MapSource(np.array([[0.0, 0.0], [399 * G, -399 * G]]), np.zeros((2, 128), np.float32), G)
+    rec = null_register(q, G, src, {"small": {"null_test": {"max_map_px": 1000}}}, rotated)
+    assert rec["scan"] == "tiled" and not rec["accepted"] and "north-up" in rec["reason"]
 
 
 def test_tiled_scan_through_the_workflows_orthophoto_reader(tmp_path):

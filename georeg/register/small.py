@@ -380,9 +380,12 @@ def null_register(
         rec.update(reason="no orthophoto", seconds=time.perf_counter() - t0)
         return rec
     if got is None:  # larger than one FFT: tile by tile (dense_tiled), up to max_tiled_map_px
-        r = tiled_scan(q0, float(q_gsd), b, read_window, source.gsd_m, float(sc["step_deg"]),
-                       int(sc["max_side"]), int(nc["block_px"]), float(nc["exclude_px"]),
-                       int(nc["tail_k"]), int(nc["tile_px"]), float(nc["max_tiled_map_px"]))  # fmt: skip
+        try:
+            r = tiled_scan(q0, float(q_gsd), b, read_window, source.gsd_m, float(sc["step_deg"]),
+                           int(sc["max_side"]), int(nc["block_px"]), float(nc["exclude_px"]),
+                           int(nc["tail_k"]), int(nc["tile_px"]), float(nc["max_tiled_map_px"]))  # fmt: skip
+        except ValueError as exc:  # an orthophoto grid the tiles cannot share (not north-up)
+            r = {"reason": str(exc)}
         rec["scan"] = "tiled"
         if "S" not in r:
             rec.update({k: v for k, v in r.items() if k in ("tiles", "map_px")})
