@@ -169,6 +169,7 @@ def tiled_scan(
     del sample, vals
     C0, R0, C1, R1 = (int(x) for x in ext)
     Hs, Ws = max(1, round((R1 - R0) * s)), max(1, round((C1 - C0) * s))
+    sy, sx = Hs / (R1 - R0), Ws / (C1 - C0)  # the whole map's shrink as cv2.resize does it
     oy, ox = Hs + 2 * pd - D + 1, Ws + 2 * pd - D + 1
     if oy < 1 or ox < 1:
         return {"reason": "no overlap or too few null blocks"}
@@ -186,25 +187,32 @@ def tiled_scan(
         for tj in range(tx):
             H0, H1 = tj * core, min(ox, (tj + 1) * core)
             done += 1
-            # offset d's canvas covers shrunk map rows [d - pd, d - pd + D)
-            pr0 = max(0, math.floor((G0 - pd - m) / s) - 2)
-            pr1 = min(R1 - R0, math.ceil((G1 - 1 - pd + D + m) / s) + 2)
-            pc0 = max(0, math.floor((H0 - pd - m) / s) - 2)
-            pc1 = min(C1 - C0, math.ceil((H1 - 1 - pd + D + m) / s) + 2)
+            # offset d's canvas covers shrunk map rows [d - pd, d - pd + D); the range is moved
+            # out a little so that the tile's shrink keeps the whole map's phase
+            pr0, pr1 = _in_phase(math.floor((G0 - pd - m) / s) - 2,
+                                 math.ceil((G1 - 1 - pd + D + m) / s) + 2, R1 - R0, s, sy)
+            pc0, pc1 = _in_phase(math.floor((H0 - pd - m) / s) - 2,
+                                 math.ceil((H1 - 1 - pd + D + m) / s) + 2, C1 - C0, s, sx)  # fmt: skip
             if pr1 <= pr0 or pc1 <= pc0:
                 continue
-            tb = grid.bounds(C0 + pc0, R0 + pr0, C0 + pc1, R0 + pr1)
-            got = read_window(tb)
+            got = read_window(grid.bounds(C0 + pc0, R0 + pr0, C0 + pc1, R0 + pr1))
             if got is None:
                 continue
             gray, A = got
+            c0, r0 = grid.offset(A)
+            # exactly the range asked for when the reader returned more (its own margins)
+            y0, x0 = max(0, pr0 - (r0 - R0)), max(0, pc0 - (c0 - C0))
+            gray = gray[y0 : pr1 - (r0 - R0), x0 : pc1 - (c0 - C0)]
+            A = A @ np.array([[1.0, 0, x0], [0, 1.0, y0], [0, 0, 1]])
+            r0, c0 = r0 + y0, c0 + x0
+            if min(gray.shape) < 8:
+                continue
             u8 = window_u8(gray, (lo, hi))
             del gray
             sf = correlation_surface(q_u8, factor, u8, step_deg, max_side)
             if sf is None:
                 continue
-            c0, r0 = grid.offset(A)
-            sr, sc = round((r0 - R0) * s), round((c0 - C0) * s)  # tile offset + (sr, sc) = global
+            sr, sc = round((r0 - R0) * sy), round((c0 - C0) * sx)  # tile offset + (sr, sc) = global
             surf = sf.scores.max(axis=0)
             a0, a1 = max(0, G0 - sr), min(surf.shape[0], G1 - sr)
             b0, b1 = max(0, H0 - sc), min(surf.shape[1], H1 - sc)
@@ -235,6 +243,29 @@ def tiled_scan(
         return {**info, "reason": "no overlap or too few null blocks"}
     return {**info, **r, "S": best["S"], "A": best["A"], "m_u8": best["m_u8"],
             "angle_deg": best["angle_deg"], "peak_offset": [int(best["gy"]), int(best["gx"])]}  # fmt: skip
+
+
+def _in_phase(lo: int, hi: int, n: int, s: float, sw: float, tol: float = 0.02) -> tuple[int, int]:
+    """A pixel range [a, e) of [0, ``n``) containing [``lo``, ``hi``) whose shrink by ``s``
+    (``cv2.resize`` to round(length x ``s``) px) samples the whole map's grid (shrunk by ``sw`` =
+    its rows after / before) in phase: a x sw and the length x sw within ``tol`` of integers
+    (else the nearest found), a moved down and e up by at most 64 shrunk px."""
+    span = math.ceil(64 / sw)
+    lo, hi = max(0, lo), min(n, hi)
+    if hi <= lo:
+        return lo, hi
+
+    def off(v: float) -> float:
+        return abs(v - round(v))
+
+    def first(cands: list[int], cost: Any) -> int:
+        good = [c for c in cands if cost(c) <= tol]
+        return good[0] if good else min(cands, key=cost)
+
+    a = first(list(range(lo, max(0, lo - span) - 1, -1)), lambda c: 0.0 if c == 0 else off(c * sw))
+    ends = [e for e in range(hi, min(n, hi + span) + 1) if round((e - a) * s) == round((e - a) * sw)]
+    e = first(ends, lambda c: off((c - a) * sw)) if ends else hi
+    return a, e
 
 
 def _pool(blocks: np.ndarray, V: np.ndarray, g0: int, h0: int, b: int) -> None:
