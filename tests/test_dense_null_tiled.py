@@ -90,7 +90,7 @@ def test_null_register_finds_a_small_query_in_a_map_beyond_one_fft_and_reads_onl
     """A 3600 x 3600 px map and a 100 px query at 3 x its GSD (1.4 M correlation px, above the
     default ``max_map_px``): ``null_register`` scans it tile by tile (``tile_px`` 768, 4 tiles),
     accepts the true place (within a map px); an unrelated query is not accepted; no read is
-    larger than a tile (``tile_px`` / s + a few px a side, under half the map)."""
+    larger than a tile (``tile_px`` + 2 x 64 shrunk px, / s) and under half the map."""
     m = _field(7, (3600, 3600), 8.0)
     src = MapSource(np.array([[0.0, 0.0], [3599 * G, -3599 * G]]), np.zeros((2, 128), np.float32),
                     G)  # fmt: skip
@@ -103,7 +103,7 @@ def test_null_register_finds_a_small_query_in_a_map_beyond_one_fft_and_reads_onl
     c = matching.apply_h(np.array(rec["homography"]), np.array([[49.5, 49.5]]))[0]
     assert np.hypot(c[0] / G - 2300.0, -c[1] / G - 900.0) < 1.0
     s, _, _ = query_geometry(q, 3.0, 96)
-    side = 768 / s + 8
+    side = (768 + 2 * 64 + 8) / s  # the tile, moved out by <= 64 shrunk px to keep the phase
     assert max(h for h, _ in asked) <= side and max(w for _, w in asked) <= side
     assert max(h * w for h, w in asked) < 0.5 * m.size
     other = _field(100, (100, 100), 8.0 / 3.0)

@@ -11,15 +11,16 @@ correlated tile by tile with bounded memory, and the statistic is built to be th
 2. **Tiles** (second pass): the offsets are cut into cores (a partition); a tile reads the map
    under its core's offsets grown by the query's rotated footprint and a margin (``margin_px``
    correlation px, beyond the reach of the CFOG filters and nodata erosion), so every offset of
-   its core is evaluated as in the whole map; only the core's offsets are kept.
+   its core is evaluated as in the whole map; only the core's offsets are kept. Memory: one
+   tile's surfaces (rotations x ``tile_px``^2 float32) and its window at full resolution.
 3. **Pooling**: the core's surface (best rotation per offset) goes into the block maxima of the
    whole map's block grid (``block_px``, aligned to the global offsets) and the global peak is
    kept (value, rotation, tile); then the same top-spacing test (``dense_null.top_spacing``).
 
-The tiles' shrunk pixels are not in the same phase as the whole map's (the shrink of a tile
-starts at its own origin), so the surface is a resampling of the whole map's: the same peak
-within a correlation px, and a slightly different statistic (measured in docs/BENCHMARKS.md,
-"Large maps: the tiled scan").
+A tile's pixel range is moved out a little (``_in_phase``) so that its shrink samples the whole
+map's shrunk grid in phase (origin and ``cv2.resize`` ratio within 0.02 shrunk px): the same
+surface up to float rounding when the query is <= ``max_side`` px at the map's GSD, a close
+resampling otherwise (measured in docs/BENCHMARKS.md, "Large maps: the tiled scan").
 """
 
 from __future__ import annotations
@@ -109,7 +110,7 @@ def tiled_scan(
     tile_px: int = 1024,
     max_map_px: float = 64e6,
     margin_px: int = 12,
-    sample_px: int = 4_000_000,
+    sample_px: int = 16_000_000,
 ) -> dict[str, Any]:
     """``dense_null.scan`` of the query (uint8, 0 = nodata; GSD ``q_gsd`` map units) over the
     map in ``bounds`` (map x0, y0, x1, y1), read tile by tile through ``read_window(bounds)`` ->
