@@ -249,7 +249,8 @@ def test_cfog_null_registers_a_tiny_sentinel2_query_and_rejects_another_city():
 def test_null_register_accepts_a_synthetic_crop_records_the_evidence_and_skips_large_maps():
     """``small.null_register`` on plain arrays (map x = col g, y = -row g): a rotated crop of
     the map is accepted with its homography within a map pixel of the truth and the evidence in
-    the record; with ``max_map_px`` below the map's size the scan is not run."""
+    the record; with ``max_map_px`` below the map's size the tiled scan finds the same place, and
+    with ``max_tiled_map_px`` below it too, the scan is not run."""
     import cv2
 
     from georeg.register.search import MapSource
@@ -277,15 +278,22 @@ def test_null_register_accepts_a_synthetic_crop_records_the_evidence_and_skips_l
     for k in ("score", "null_max", "gap", "tail_scale", "null_blocks", "log10_p", "statistic"):
         assert k in rec
     assert rec["log10_nfa"] < -3.0 and rec["null_blocks"] >= 30
-    small = null_register(q, g, src, {"small": {"null_test": {"max_map_px": 1000}}}, read)
-    assert not small["accepted"] and "too large" in small["reason"]
+    # above max_map_px: the tiled scan (dense_tiled) gives the same place; above its cap, none
+    tiled = null_register(q, g, src, {"small": {"null_test": {"max_map_px": 1000}}}, read)
+    assert tiled["accepted"] and tiled["scan"] == "tiled" and rec["scan"] == "whole", tiled
+    ct = matching.apply_h(np.array(tiled["homography"]), np.array([[30.0, 30.0]]))[0]
+    assert np.hypot(*(ct - c)) < 0.2 * g
+    capped = {"small": {"null_test": {"max_map_px": 1000, "max_tiled_map_px": 1000}}}
+    small = null_register(q, g, src, capped, read)
+    assert not small["accepted"] and "too large for the tiled scan" in small["reason"]
 
 
 def test_null_check_replaces_a_feature_fit_the_scan_contradicts_and_keeps_one_it_confirms():
     """``small.null_check``: a small query's fused feature fit is compared with the whole-map
     CFOG scan. The true fit agrees and is kept; a fit 12 map px off conflicts with the scan's
     significant peak and is replaced by it (within a map pixel of the truth); switched off, or
-    when the registration is the scan's own, nothing is run."""
+    when the registration is the scan's own, nothing is run; above ``max_map_px`` the check
+    does not tile."""
     import cv2
 
     from georeg.register.search import MapSource
@@ -323,6 +331,11 @@ def test_null_check_replaces_a_feature_fit_the_scan_contradicts_and_keeps_one_it
     assert null_check(q, fused, src, no, g, read) == (fused, None)
     own = {"cfog_null": {"accepted": True}}
     assert null_check(q, fused, src, conf, g, read, own) == (fused, None)
+    # a map above max_map_px: the check does not run the tiled scan (its cost per query)
+    big = {"small": {"null_test": {"enabled": True, "max_map_px": 1000}}}
+    out, rec = null_check(q, {**fused, "homography": off.tolist()}, src, big, g, read)
+    assert out["homography"] == off.tolist() and not rec["replaced"]
+    assert "tiled scan" in rec["reason"]
 
 
 @needs_data

@@ -231,13 +231,15 @@ def dense_conf(reg_conf: dict[str, Any] | None) -> dict[str, Any]:
     return {**DENSE_DEFAULTS, **((reg_conf or {}).get("dense") or {})}
 
 
-def window_u8(gray: np.ndarray) -> np.ndarray:
-    """A float map window (NaN = nodata) stretched to uint8 1..255, 0 = nodata."""
+def window_u8(gray: np.ndarray, levels: tuple[float, float] | None = None) -> np.ndarray:
+    """A float map window (NaN = nodata) stretched to uint8 1..255, 0 = nodata: its own 1 and
+    99 percentiles to 1 and 255, or the given ``levels`` (lo, hi; e.g. a whole map's, for one
+    tile of it)."""
     ok = np.isfinite(gray)
     out = np.zeros(gray.shape, np.uint8)
     if ok.sum() < 16:
         return out
-    lo, hi = np.percentile(gray[ok], [1.0, 99.0])
+    lo, hi = np.percentile(gray[ok], [1.0, 99.0]) if levels is None else levels
     out[ok] = np.round(np.clip((gray[ok] - lo) / max(hi - lo, 1e-6), 0, 1) * 254 + 1).astype(
         np.uint8
     )

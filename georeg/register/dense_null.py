@@ -18,6 +18,9 @@ blocks) was measured too: valid but with far less power (its fit is driven by th
 spread overstates the tail's). Developed on the tuning cities only
 (``benchmarks/diag_small_null.py``, docs/BENCHMARKS.md "A calibrated null for the CFOG peak").
 
+Maps too large for one FFT are scanned tile by tile with the same statistic
+(``georeg.register.dense_tiled``, ``top_spacing`` shared).
+
 An accepted peak is then a similarity at the known GSD: refined by a finer rotation search and a
 sub-pixel peak around it (``fine_pose``).
 """
@@ -36,7 +39,9 @@ NULL_DEFAULTS: dict[str, Any] = {
     "block_px": 16,  # block side (correlation px, i.e. after the max_side shrink)
     "exclude_px": 12.0,  # map px around the tested peak left out of the null sample
     "tail_k": 30,  # top null block maxima that give the tail's scale
-    "max_map_px": 1_000_000,  # the map (shrunk) may have at most this many px, else not run
+    "max_map_px": 1_000_000,  # the map (shrunk) may have at most this many px for one FFT
+    "tile_px": 1024,  # larger maps: tiles of this side (correlation px, overlap included) ...
+    "max_tiled_map_px": 64_000_000,  # ... up to this many correlation px, else not run
     "log_nfa_max": -3.0,
     "fine_step_deg": 1.0,
     "fine_range_deg": 5.0,
@@ -89,9 +94,29 @@ def scan(
         return None
     pr, pc = np.unravel_index(int(np.argmax(surf)), surf.shape)
     kr = int(np.argmax(sf.scores[:, pr, pc]))
-    peak = float(surf[pr, pc])
     vals, br, bc = block_maxima(surf, block_px)
-    far = (br - pr) ** 2 + (bc - pc) ** 2 > (exclude_px * sf.s + block_px) ** 2
+    r = top_spacing(float(surf[pr, pc]), pr, pc, vals, br, bc, sf.s, block_px, exclude_px, tail_k)
+    if r is None:
+        return None
+    return {"S": sf.to_window(kr, int(pr), int(pc)), "angle_deg": float(sf.angles[kr]), **r}
+
+
+def top_spacing(
+    peak: float,
+    pr: float,
+    pc: float,
+    vals: np.ndarray,
+    br: np.ndarray,
+    bc: np.ndarray,
+    s: float,
+    block_px: int,
+    exclude_px: float,
+    tail_k: int,
+) -> dict[str, Any] | None:
+    """The top-spacing test of the peak ``peak`` at surface px (``pr``, ``pc``) against the block
+    maxima ``vals`` (block centres ``br``, ``bc``) farther than ``exclude_px`` map px (``s``:
+    correlation px per map px) plus a block from it; None when fewer than 30 remain."""
+    far = (br - pr) ** 2 + (bc - pc) ** 2 > (exclude_px * s + block_px) ** 2
     null = vals[far]
     if len(null) < 30:
         return None
@@ -101,8 +126,6 @@ def scan(
     gap = peak - float(top[0])
     lp = -gap / scale / math.log(10.0)
     return {
-        "S": sf.to_window(kr, int(pr), int(pc)),
-        "angle_deg": float(sf.angles[kr]),
         "score": peak,
         "null_max": float(top[0]),
         "gap": gap,
@@ -112,7 +135,7 @@ def scan(
         "log10_nfa": lp,  # one test per map: the count is in the law of the top spacing
         "blocks": int(len(vals)),
         "null_blocks": int(len(null)),
-        "shrink": float(sf.s),
+        "shrink": float(s),
     }
 
 

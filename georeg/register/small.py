@@ -348,9 +348,14 @@ def null_register(
     null (``georeg.register.dense_null``, ``register.small.null_test``); an accepted peak becomes a
     similarity at the known GSD refined by ``dense_null.fine_pose`` and checked for
     plausibility. A record like a search part's (``accepted``, ``homography``, ``log10_nfa``
-    = the CFOG peak's, ``inliers`` 0) with the evidence (statistic, p-value, null size)."""
+    = the CFOG peak's, ``inliers`` 0) with the evidence (statistic, p-value, null size).
+
+    The map is read and correlated at once up to ``max_map_px`` correlation px (``scan:
+    whole``), tile by tile above it (``georeg.register.dense_tiled``, ``tile_px``; ``scan:
+    tiled``, ``tiles``) up to ``max_tiled_map_px``, and not at all beyond (``reason``)."""
     from georeg.register.dense import window_u8
     from georeg.register.dense_null import fine_pose, scan
+    from georeg.register.dense_tiled import tiled_scan
 
     t0 = time.perf_counter()
     sc = small_conf(conf)
@@ -365,31 +370,42 @@ def null_register(
     # the map as the correlation sees it: the query shrunk to max_side px
     per_m = min(1.0 / source.gsd_m, float(sc["max_side"]) / (max(h, w) * float(q_gsd)))
     est = (b[2] - b[0]) * (b[3] - b[1]) * per_m**2
-    if est > float(nc["max_map_px"]):
-        rec.update(reason=f"map too large for the scan ({est:.0f} > {nc['max_map_px']} px)",
-                   seconds=time.perf_counter() - t0)  # fmt: skip
-        return rec
-    got = read_window(b)
-    if got is None:
+    q0 = u8 if u8.ndim == 2 else u8[0]
+    got = None if est > float(nc["max_map_px"]) else read_window(b)
+    if got is not None:
+        gray, A = got
+        m_px = float(np.sqrt(abs(np.linalg.det(A[:2, :2]))))
+        factor = float(q_gsd) / m_px
+        est = gray.size * min(1.0, float(sc["max_side"]) / (max(h, w) * factor)) ** 2
+        if est > float(nc["max_map_px"]):  # the orthophoto is finer than the features
+            got = gray = None
+    elif est <= float(nc["max_map_px"]):
         rec.update(reason="no orthophoto", seconds=time.perf_counter() - t0)
         return rec
-    gray, A = got
-    m_px = float(np.sqrt(abs(np.linalg.det(A[:2, :2]))))
-    rec["map_px"] = m_px
-    q0 = u8 if u8.ndim == 2 else u8[0]
-    factor = float(q_gsd) / m_px
-    est = gray.size * min(1.0, float(sc["max_side"]) / (max(h, w) * factor)) ** 2
-    if est > float(nc["max_map_px"]):  # the orthophoto is finer than the features
-        rec.update(reason=f"map too large for the scan ({est:.0f} > {nc['max_map_px']} px)",
-                   seconds=time.perf_counter() - t0)  # fmt: skip
-        return rec
-    m_u8 = window_u8(gray)
-    r = scan(q0, factor, m_u8, float(sc["step_deg"]), int(sc["max_side"]), int(nc["block_px"]),
-             float(nc["exclude_px"]), int(nc["tail_k"]))  # fmt: skip
-    if r is None:
-        rec.update(reason="no overlap or too few null blocks", seconds=time.perf_counter() - t0)
-        return rec
+    if got is None:  # larger than one FFT: tile by tile (dense_tiled), up to max_tiled_map_px
+        try:
+            r = tiled_scan(q0, float(q_gsd), b, read_window, source.gsd_m, float(sc["step_deg"]),
+                           int(sc["max_side"]), int(nc["block_px"]), float(nc["exclude_px"]),
+                           int(nc["tail_k"]), int(nc["tile_px"]), float(nc["max_tiled_map_px"]))  # fmt: skip
+        except ValueError as exc:  # an orthophoto grid the tiles cannot share (not north-up)
+            r = {"reason": str(exc)}
+        rec["scan"] = "tiled"
+        if "S" not in r:
+            rec.update({k: v for k, v in r.items() if k in ("tiles", "map_px")})
+            rec.update(reason=r["reason"], seconds=time.perf_counter() - t0)
+            return rec
+        A, m_u8, factor = r.pop("A"), r.pop("m_u8"), r.pop("factor")
+    else:
+        rec["scan"] = "whole"
+        m_u8 = window_u8(gray)
+        r = scan(q0, factor, m_u8, float(sc["step_deg"]), int(sc["max_side"]),
+                 int(nc["block_px"]), float(nc["exclude_px"]), int(nc["tail_k"]))  # fmt: skip
+        if r is None:
+            rec.update(reason="no overlap or too few null blocks",
+                       seconds=time.perf_counter() - t0)  # fmt: skip
+            return rec
     rec.update({k: v for k, v in r.items() if k != "S"})
+    rec["map_px_m"] = float(q_gsd) / float(factor)  # map units per map pixel
     reasons = []
     if not r["log10_nfa"] < float(nc["log_nfa_max"]):
         reasons.append(f"CFOG peak log10 NFA {r['log10_nfa']:.1f} >= {nc['log_nfa_max']}")
@@ -427,7 +443,10 @@ def null_check(
         return fused, None
     if ((split_small or {}).get("cfog_null") or {}).get("accepted"):
         return fused, None  # the registration is the scan's own
-    got = null_register(u8, gsd_m, source, conf, read_window)
+    # the whole-map scan only: a tiled scan per registered query would cost minutes on a
+    # county-scale map, and the test's power falls as the map grows (docs/BENCHMARKS.md)
+    whole_only = {**conf, "small": {**sc, "null_test": {**nc, "max_tiled_map_px": 0}}}
+    got = null_register(u8, gsd_m, source, whole_only, read_window)
     rec: dict[str, Any] = {k: v for k, v in got.items() if k != "homography"}
     rec["replaced"] = False
     if not got["accepted"]:
@@ -437,7 +456,7 @@ def null_check(
     a = np.asarray(fused["homography"], float) @ c
     b = np.asarray(got["homography"], float) @ c
     d_map = float(np.hypot(*(a[:2] / a[2] - b[:2] / b[2])))
-    d_corr = d_map / float(got["map_px"]) * float(got["shrink"])
+    d_corr = d_map / float(got["map_px_m"]) * float(got["shrink"])
     rec.update(distance_corr_px=round(d_corr, 2), conflict_px=float(nc["conflict_px"]))
     if d_corr <= float(nc["conflict_px"]):
         rec["outcome"] = "agrees"
