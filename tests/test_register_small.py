@@ -246,15 +246,13 @@ def test_cfog_null_registers_a_tiny_sentinel2_query_and_rejects_another_city():
     assert not out["neg"][0]["accepted"] and out["neg"][0]["log10_nfa"] > bound
 
 
-def test_null_register_accepts_a_synthetic_crop_records_the_evidence_and_skips_large_maps():
-    """``small.null_register`` on plain arrays (map x = col g, y = -row g): a rotated crop of
-    the map is accepted with its homography within a map pixel of the truth and the evidence in
-    the record; with ``max_map_px`` below the map's size the tiled scan finds the same place, and
-    with ``max_tiled_map_px`` below it too, the scan is not run."""
+def _crop_scene() -> tuple:
+    """A 300 px field (map x = col g, y = -row g, g = 10), a 61 px crop of it rotated by 40 deg
+    whose centre is map px (150, 170), a plain-array MapSource, a window reader and the crop's
+    warp A (map px -> query px)."""
     import cv2
 
     from georeg.register.search import MapSource
-    from georeg.register.small import null_register
 
     g = 10.0
     m = _field(5, (300, 300))
@@ -269,6 +267,19 @@ def test_null_register_accepts_a_synthetic_crop_records_the_evidence_and_skips_l
         r0, r1 = max(0, math.floor(-b[3] / g)), min(300, math.ceil(-b[1] / g) + 1)
         win = m[r0:r1, c0:c1].astype(np.float32)
         return win, np.array([[g, 0, c0 * g], [0, -g, -r0 * g], [0, 0, 1.0]])
+
+    return g, q, src, read, A
+
+
+def test_null_register_accepts_a_synthetic_crop_records_the_evidence_and_skips_large_maps():
+    """``small.null_register`` on plain arrays (map x = col g, y = -row g): a rotated crop of
+    the map is accepted with its homography within a map pixel of the truth and the evidence in
+    the record; with ``max_map_px`` below the map's size the tiled scan finds the same place, and
+    with ``max_tiled_map_px`` below it too, the scan is not run."""
+
+    from georeg.register.small import null_register
+
+    g, q, src, read, A = _crop_scene()
 
     conf = {"small": {"null_test": {"enabled": True}}}
     rec = null_register(q, g, src, conf, read)
@@ -296,22 +307,9 @@ def test_null_check_replaces_a_feature_fit_the_scan_contradicts_and_keeps_one_it
     does not tile."""
     import cv2
 
-    from georeg.register.search import MapSource
     from georeg.register.small import null_check
 
-    g = 10.0
-    m = _field(5, (300, 300))
-    A = cv2.getRotationMatrix2D((150.0, 170.0), -40.0, 1.0)  # query centre = map px (150, 170)
-    A[:, 2] += (30.0 - 150.0, 30.0 - 170.0)
-    q = cv2.warpAffine(m.astype(np.float32), A, (61, 61), flags=cv2.INTER_LINEAR)
-    q = np.clip(q, 1, 255).astype(np.uint8)
-    src = MapSource(np.array([[0.0, 0.0], [299 * g, -299 * g]]), np.zeros((2, 128), np.float32), g)
-
-    def read(b):
-        c0, c1 = max(0, math.floor(b[0] / g)), min(300, math.ceil(b[2] / g) + 1)
-        r0, r1 = max(0, math.floor(-b[3] / g)), min(300, math.ceil(-b[1] / g) + 1)
-        win = m[r0:r1, c0:c1].astype(np.float32)
-        return win, np.array([[g, 0, c0 * g], [0, -g, -r0 * g], [0, 0, 1.0]])
+    g, q, src, read, A = _crop_scene()
 
     # the truth: query px -> map px (inverse of A) -> map x = col g, y = -row g
     Ai = cv2.invertAffineTransform(A)
