@@ -90,6 +90,17 @@ class Surface:
     query_shape: tuple[int, int] = (0, 0)  # shrunk query (rows, cols)
 
 
+def shrunk_query(q_u8: np.ndarray, factor: float,
+                 max_side: int) -> tuple[np.ndarray, np.ndarray, float, int]:  # fmt: skip
+    """The query as the correlation sees it: resampled to the map GSD (``factor`` = query GSD /
+    map GSD), then shrunk by s so that it is at most ``max_side`` px. Returns (query, valid, s,
+    D = the side of the canvas that holds it at any rotation; the map is padded by D // 2)."""
+    q, qv = _shrink(q_u8, q_u8 > 0, factor)
+    s = min(1.0, max_side / max(q.shape))
+    q, qv = _shrink(q, qv, s)
+    return q, qv, s, int(math.ceil(math.hypot(*q.shape))) + 2
+
+
 def correlation_surface(
     q_u8: np.ndarray,
     factor: float,
@@ -105,15 +116,11 @@ def correlation_surface(
     with the map window ``m_u8`` (uint8, 0 = nodata) at every rotation step and offset (see
     ``dense_search``; ``angles`` in degrees instead of every ``step_deg``). None when nothing
     overlaps."""
-    qv0 = q_u8 > 0
-    q, qv = _shrink(q_u8, qv0, factor)
-    s = min(1.0, max_side / max(q.shape))
-    q, qv = _shrink(q, qv, s)
+    q, qv, s, D = shrunk_query(q_u8, factor, max_side)
     m, mv = _shrink(m_u8, m_u8 > 0, s)
     if qv.sum() < 64 or mv.sum() < 64:
         return None
     h, w = q.shape
-    D = int(math.ceil(math.hypot(h, w))) + 2
     # the query may stick out of the window by up to half its rotated side
     pd = D // 2
     m = np.pad(m, pd)

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from georeg.register.dense import _shrink, correlation_surface, window_u8
+from georeg.register.dense import correlation_surface, shrunk_query, window_u8
 from georeg.register.dense_null import top_spacing
 
 log = logging.getLogger(__name__)
@@ -40,10 +40,7 @@ log = logging.getLogger(__name__)
 def query_geometry(q_u8: np.ndarray, factor: float, max_side: int) -> tuple[float, int, int]:
     """As ``dense.correlation_surface`` shrinks the query: (s = correlation px per map px, D =
     canvas side, pd = map padding), both in correlation px."""
-    q, qv = _shrink(q_u8, q_u8 > 0, factor)
-    s = min(1.0, max_side / max(q.shape))
-    q, _ = _shrink(q, qv, s)
-    D = int(math.ceil(math.hypot(*q.shape))) + 2
+    _, _, s, D = shrunk_query(q_u8, factor, max_side)
     return s, D, D // 2
 
 

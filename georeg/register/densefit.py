@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from georeg.register.geolocation import apply_h
+from georeg.register.geolocation import apply_h, ground_px
 
 log = logging.getLogger(__name__)
 
@@ -85,14 +85,6 @@ def _fit(src: np.ndarray, dst: np.ndarray, w: np.ndarray, model: str) -> np.ndar
     if model == "homography":
         return fit_homography_lsq(src, dst, w)
     raise ValueError(f"unknown global_fit model {model!r} (expected homography, affine or auto)")
-
-
-def _px_scale(H: np.ndarray, width: int, height: int) -> float:
-    """Map units per query pixel at the footprint centre."""
-    c = np.array([width / 2, width / 2 + 1, width / 2])
-    r = np.array([height / 2, height / 2, height / 2 + 1])
-    x, y = apply_h(H, c, r)
-    return float(np.sqrt(abs((x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0]))))
 
 
 def residuals_px(H: np.ndarray, src: np.ndarray, dst: np.ndarray, px: float) -> np.ndarray:
@@ -205,7 +197,7 @@ def dense_fit(
     pts = window_centroid(centres, w, h, win)
     cols = np.arange(w, dtype=np.float64)[None, :]
     rows = np.arange(h, dtype=np.float64)[:, None]
-    px = _px_scale(H0, w, h)
+    px = ground_px(H0, w, h)
     corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], float)
     info: dict[str, Any] = {"enabled": True, "accepted": False, "grid_points": int(len(pts))}
     Hc = H0.copy()

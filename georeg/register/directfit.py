@@ -27,7 +27,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from georeg.register.geolocation import apply_h
+from georeg.register.geolocation import apply_h, ground_px
 
 log = logging.getLogger(__name__)
 
@@ -189,9 +189,8 @@ def direct_fit(
     ``refine_conf``: the CFOG settings (``georeg.register.refine``).
 
     Returns the homography to use (the fit, or ``H`` when the guard keeps it) and a report."""
-    from georeg.register.densefit import _px_scale
     from georeg.register.refine import merged as refine_merged
-    from georeg.register.refine import query_cfog
+    from georeg.register.refine import query_cfog, query_valid
 
     t0 = time.perf_counter()
     c = merged(conf)
@@ -199,10 +198,9 @@ def direct_fit(
     orient = int(rc["orientations"])
     H0 = np.asarray(H, np.float64)
     h, w = band.shape[-2:]
-    stack = band if band.ndim == 3 else band[None]
-    qvalid = np.all((stack > 0) if stack.dtype == np.uint8 else np.isfinite(stack), axis=0)
+    qvalid = query_valid(band)
     qgood = _good(qvalid)
-    px = _px_scale(H0, w, h)
+    px = ground_px(H0, w, h)
     info: dict[str, Any] = {"enabled": True, "accepted": False, "model": str(c["model"])}
     if qvalid.sum() > int(c["max_pixels"]):
         info.update(reason=f"{int(qvalid.sum())} valid pixels > max_pixels {c['max_pixels']}",

@@ -26,6 +26,13 @@ def apply_h(H: np.ndarray, col: np.ndarray, row: np.ndarray) -> tuple[np.ndarray
     return np.where(bad, np.nan, x), np.where(bad, np.nan, y)
 
 
+def ground_px(H: np.ndarray, width: int, height: int) -> float:
+    """Map units per query pixel at the footprint's centre (sqrt of H's local Jacobian area)."""
+    x, y = apply_h(H, np.array([width / 2, width / 2 + 1, width / 2]),
+                   np.array([height / 2, height / 2, height / 2 + 1]))  # fmt: skip
+    return float(np.sqrt(abs((x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0]))))
+
+
 def map_xy(H: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """Map x, y (float64, (height, width)) of every query pixel centre (col, row) through H."""
     u = np.arange(width, dtype=np.float64)

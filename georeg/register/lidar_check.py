@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from georeg.register.dense import _shrink
-from georeg.register.geolocation import apply_h
+from georeg.register.geolocation import apply_h, ground_px
 from georeg.register.refine import MapImage, cfog, grid_points, measure_shifts
 
 log = logging.getLogger(__name__)
@@ -73,12 +73,6 @@ def lidar_conf(reg_conf: dict[str, Any] | None) -> dict[str, Any]:
     if c["layer"] not in LAYERS:
         raise ValueError(f"register.lidar_check.layer must be one of {LAYERS}, got {c['layer']!r}")
     return c
-
-
-def _footprint_px_m(H: np.ndarray, w: int, h: int) -> float:
-    """Ground size of one query pixel at the footprint's centre (map units)."""
-    x, y = apply_h(H, np.array([w / 2, w / 2 + 1, w / 2]), np.array([h / 2, h / 2, h / 2 + 1]))
-    return float(np.sqrt(abs((x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0]))))
 
 
 def _coherence(
@@ -139,7 +133,7 @@ def check(
     d = float(c["null_shift"]) * float(c["search_px"])
     moves = ((d, 0.0), (-d, 0.0), (0.0, d), (0.0, -d))
     null = [_coherence(qf, qm, render(dx, dy), pts, c) for dx, dy in moves]
-    scale = _footprint_px_m(H, w, h) / abs(float(elevation.transform[0])) / s  # map px / shrunk px
+    scale = ground_px(H, w, h) / abs(float(elevation.transform[0])) / s  # map px / shrunk px
     best = max(x[0] for x in null)
     rec.update(
         coherent=coh,

@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from georeg.register.dense import _shrink
-from georeg.register.geolocation import apply_h
+from georeg.register.geolocation import apply_h, ground_px
 from georeg.register.refine import MapImage, cfog, grid_points, measure_shifts
 
 log = logging.getLogger(__name__)
@@ -81,12 +81,6 @@ def ortho_conf(reg_conf: dict[str, Any] | None) -> dict[str, Any]:
     return c
 
 
-def _ground_px(H: np.ndarray, w: int, h: int) -> float:
-    """Ground size of one query pixel at the footprint's centre (map units)."""
-    x, y = apply_h(H, np.array([w / 2, w / 2 + 1, w / 2]), np.array([h / 2, h / 2, h / 2 + 1]))
-    return float(np.sqrt(abs((x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0]))))
-
-
 def _support(qf: np.ndarray, qm: np.ndarray, rendered: np.ndarray, pts: np.ndarray,
              c: dict[str, Any]) -> dict[str, Any]:  # fmt: skip
     """Tie points of the query against one rendering: the supported fraction of the measurable
@@ -117,7 +111,7 @@ def check(
     h, w = q_u8.shape
     rec: dict[str, Any] = {"outcome": "skipped"}
     map_px = abs(float(ortho.transform[0]))
-    ground = _ground_px(H, w, h) / map_px  # map px per query px
+    ground = ground_px(H, w, h) / map_px  # map px per query px
     s = working_scale(q_u8.shape, H, map_px, c)
     qs, qm = _shrink(q_u8.astype(np.float32), q_u8 > 0, s)
     hs, ws = qs.shape
@@ -159,7 +153,7 @@ def working_scale(q_shape: tuple[int, ...], H: np.ndarray, map_px: float,
     """Query px -> working px factor: ``map_px`` map pixels per working pixel, the query at most
     ``max_side`` working px across."""
     h, w = q_shape[-2:]
-    ground = _ground_px(np.asarray(H, float), w, h) / map_px
+    ground = ground_px(np.asarray(H, float), w, h) / map_px
     return min(ground / float(c["map_px"]), float(c["max_side"]) / max(h, w))
 
 

@@ -44,7 +44,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from georeg.register.geolocation import apply_h
+from georeg.register.geolocation import apply_h, ground_px
 
 log = logging.getLogger(__name__)
 
@@ -118,6 +118,13 @@ def cfog(
     return ch
 
 
+def query_valid(band: np.ndarray) -> np.ndarray:
+    """Valid pixels of a query band (H, W) or band stack (B, H, W): uint8 > 0 or finite float,
+    in every band."""
+    stack = band if band.ndim == 3 else band[None]
+    return np.all((stack > 0) if stack.dtype == np.uint8 else np.isfinite(stack), axis=0)
+
+
 def query_cfog(band: np.ndarray, orientations: int = 9,
                sigma: float = 1.0) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """CFOG channels and valid mask of a query band (H, W) or of a stack of co-registered bands
@@ -125,7 +132,7 @@ def query_cfog(band: np.ndarray, orientations: int = 9,
     its bands and L2-normalised again (one band's noise is not the others'); valid = every
     band valid."""
     stack = band if band.ndim == 3 else band[None]
-    valid = np.all((stack > 0) if stack.dtype == np.uint8 else np.isfinite(stack), axis=0)
+    valid = query_valid(band)
     ch = sum(cfog(b.astype(np.float32), valid, orientations, sigma) for b in stack)
     if len(stack) > 1:
         ch = ch / (np.sqrt((ch**2).sum(0)) + 1e-6 * (float(np.abs(ch).max()) + 1e-12))
@@ -735,16 +742,6 @@ def refine(
 # ----------------------------------------------------------------------------- the rule
 
 
-def _query_px_m(H: np.ndarray, width: int, height: int) -> float:
-    """Ground size of one query pixel at the image centre (sqrt of the local Jacobian's area)."""
-    c, r = (
-        np.array([width / 2, width / 2 + 1, width / 2]),
-        np.array([height / 2] * 2 + [height / 2 + 1]),
-    )
-    x, y = apply_h(H, c, r)
-    return float(np.sqrt(abs((x[1] - x[0]) * (y[2] - y[0]) - (x[2] - x[0]) * (y[1] - y[0]))))
-
-
 def run_refine(
     band_tif: str,
     reg_json: str,
@@ -796,7 +793,7 @@ def run_refine(
     x0, y0 = apply_h(H, np.arange(w, dtype=float)[None, :], np.arange(h, dtype=float)[:, None])
     map_image = read_map_gray(ortho, x0, y0, pad=4.0 * float(c["search_px"]) + 8.0)
     x, y, info = refine(band, H, map_image, c)
-    qpx = _query_px_m(H, w, h)
+    qpx = ground_px(H, w, h)
     info["query_px_m"] = qpx
     info["enabled"] = True
     t1 = time.perf_counter()

@@ -441,8 +441,8 @@ def null_check(
     if (not nc["enabled"] or not nc.get("check", True) or fused.get("homography") is None
             or not applies(w, h, conf) or not gsd_m or read_window is None):  # fmt: skip
         return fused, None
-    if ((split_small or {}).get("cfog_null") or {}).get("accepted"):
-        return fused, None  # the registration is the scan's own
+    if (split_small or {}).get("cfog_null") is not None:
+        return fused, None  # the fallback already scanned: its peak registered this, or was not significant
     # the whole-map scan only: a tiled scan per registered query would cost minutes on a
     # county-scale map, and the test's power falls as the map grows (docs/BENCHMARKS.md)
     whole_only = {**conf, "small": {**sc, "null_test": {**nc, "max_tiled_map_px": 0}}}
