@@ -342,6 +342,11 @@ METHODS: dict[str, dict[str, Any]] = {
     # image): since issue 20 ("accuracy over the whole footprint") the global homography is first
     # refitted to dense CFOG tie points (refine.global_fit); `_before` = the refinement without it
     "wf_default_refined": {"pipeline": {}, "bands": "auto", "refine": {}},
+    # an accepted fit kept as RANSAC's least squares fitted it (before session 9) instead of
+    # refitted with the model chosen by leave-one-out CV (register.ransac.final_model)
+    "wf_ransac_final": {"pipeline": {"ransac": {"final_model": "ransac"}}, "bands": "auto"},
+    "wf_ransac_final_refined": {"pipeline": {"ransac": {"final_model": "ransac"}},
+                                "bands": "auto", "refine": {}},  # fmt: skip
     "wf_default_refined_before": {
         "pipeline": {},
         "bands": "auto",

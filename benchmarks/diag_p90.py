@@ -298,15 +298,22 @@ if __name__ == "__main__":
     ap.add_argument("--half", default="tuning")
     ap.add_argument("--out", default="/tmp/p90/tuning.pkl")
     ap.add_argument("--set", default="protocol", choices=("protocol", "small", "tiny"))
+    ap.add_argument("--variants", default="default,direct,primary_band",
+                    help="variants: refinement overrides (default, direct, primary_band, gf_sim, no_gf, gf_1se)")
     a = ap.parse_args()
     if a.cmd == "run":
         run(a.half, a.out, which=a.set)
     elif a.cmd == "variants":  # arg: comma-separated pickles
-        refine_variants(a.arg.split(","), {
+        known = {
             "default": {},
             "direct": {"direct_fit": {"enabled": True}},
             "primary_band": {"pooled_bands": False},
-        }, which=a.set)
+            "gf_sim": {"global_fit": {"model": "similarity"}},
+            "no_gf": {"global_fit": {"enabled": False}},
+            "gf_1se": {"global_fit": {"auto_rule": "one_se"}},
+        }
+        refine_variants(a.arg.split(","), {k: known[k] for k in a.variants.split(",")},
+                        which=a.set)  # fmt: skip
     elif a.cmd == "analyse":
         analyse(a.arg, [], which=a.set)
     elif a.cmd == "compare":

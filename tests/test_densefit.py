@@ -7,7 +7,12 @@ import pytest
 from rasterio.transform import Affine
 from test_refine import _texture
 
-from georeg.register.densefit import dense_fit, fit_affine_lsq, fit_homography_lsq
+from georeg.register.densefit import (
+    dense_fit,
+    fit_affine_lsq,
+    fit_homography_lsq,
+    fit_similarity_lsq,
+)
 from georeg.register.geolocation import apply_h, map_xy
 from georeg.register.refine import MapImage, refine
 
@@ -60,6 +65,26 @@ def test_lsq_fits_recover_exact_maps():
     A[2] = [0, 0, 1]
     dst = np.column_stack(apply_h(A, src[:, 0], src[:, 1]))
     assert np.allclose(fit_affine_lsq(src, dst), A, atol=1e-8)
+
+
+def test_similarity_lsq_recovers_a_nadir_map_with_its_row_flip():
+    """Query px -> map x, y (y up) of a rotated nadir view: a proper similarity in (x, -y)."""
+    rng = np.random.default_rng(1)
+    src = rng.uniform(0, 100, (30, 2))
+    t = np.radians(37.0)
+    H = np.array([[2 * np.cos(t), 2 * np.sin(t), 500.0], [2 * np.sin(t), -2 * np.cos(t), 900.0],
+                  [0, 0, 1.0]])  # fmt: skip
+    dst = np.column_stack(apply_h(H, src[:, 0], src[:, 1]))
+    assert np.allclose(fit_similarity_lsq(src, dst, rng.uniform(0.1, 1, 30)), H, atol=1e-8)
+
+
+def test_one_se_rule_keeps_a_similarity_for_a_nadir_view_and_recovers_it(scene):
+    """The scene's truth is a similarity: by the one-standard-error rule the simplest model
+    (similarity) predicts the held-out blocks as well as any, and brings the edges in."""
+    H, info = dense_fit(scene["band"], scene["H0"], scene["map"], {"auto_rule": "one_se"}, {})
+    assert info["accepted"] and info["model"] == "similarity", info["cv_rms_px"]
+    e = _err(H, scene["truth"])
+    assert np.percentile(e, 90) < 0.3 and e.max() < 0.6, (np.percentile(e, 90), e.max())
 
 
 def test_refit_brings_the_edges_of_a_clustered_fit_to_the_truth(scene):
@@ -121,11 +146,12 @@ def test_auto_takes_the_homography_when_the_view_has_perspective(scene):
     q = 255.0 - scene["map"].render(tx, ty) + rng.normal(0, 3.0, (HGT, W))
     band = np.clip(np.nan_to_num(q, nan=0.0), 0, 255).astype(np.uint8)
     H0 = H @ _similarity_about((30.0, 30.0), 1.012, 0.5)
-    Hf, info = dense_fit(band, H0, scene["map"], {"model": "auto"}, {})
-    assert info["accepted"] and info["model"] == "homography", info["cv_rms_px"]
-    x, y = map_xy(Hf, W, HGT)
-    e = np.hypot(x - tx, y - ty)
-    assert np.percentile(e, 90) < 0.3, np.percentile(e, 90)
+    for rule in ("gain", "one_se"):
+        Hf, info = dense_fit(band, H0, scene["map"], {"model": "auto", "auto_rule": rule}, {})
+        assert info["accepted"] and info["model"] == "homography", (rule, info["cv_rms_px"])
+        x, y = map_xy(Hf, W, HGT)
+        e = np.hypot(x - tx, y - ty)
+        assert np.percentile(e, 90) < 0.3, (rule, np.percentile(e, 90))
 
 
 def test_a_small_footprint_gets_a_guard_it_can_compute():

@@ -34,8 +34,11 @@ DEFAULTS: dict[str, Any] = {
     "cv_folds": 5,  # spatially blocked folds of the guard
     "cv_block_windows": 1.0,  # side of a CV block, in tie-point windows (refine.window_px)
     "min_gain": 0.1,  # the refit's CV residual must be this fraction below the feature fit's
+    # auto: gain (affine unless the homography's CV is min_gain lower) | one_se (the simplest of
+    # similarity, affine, homography within one standard error of the lowest blocked CV)
+    "auto_rule": "gain",
     "converged_px": 0.05,  # stop when the footprint moves less than this (query px)
-    "model": "auto",  # auto (affine unless the homography's CV wins by min_gain) | homography | affine
+    "model": "auto",  # auto (auto_rule) | homography | affine | similarity
 }
 
 
@@ -79,7 +82,23 @@ def fit_affine_lsq(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None
     return H
 
 
+def fit_similarity_lsq(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """Weighted least-squares similarity (rotation, scale, shift) query px src (N, 2) -> map
+    x, y dst (N, 2, y up: proper in (x, -y)) as a 3 x 3 matrix; N >= 2."""
+    c = src.mean(0)
+    x, y = (src - c).T
+    one, zero = np.ones(len(src)), np.zeros(len(src))
+    sw = np.sqrt(np.ones(len(src)) if w is None else np.asarray(w, float))
+    A = np.r_[np.c_[x, -y, one, zero] * sw[:, None], np.c_[y, x, zero, one] * sw[:, None]]
+    b = np.r_[dst[:, 0] * sw, -dst[:, 1] * sw]
+    a, bb, tx, ty = np.linalg.lstsq(A, b, rcond=None)[0]
+    S = np.array([[a, -bb, tx], [bb, a, ty], [0.0, 0.0, 1.0]])
+    return np.diag([1.0, -1.0, 1.0]) @ S @ np.array([[1.0, 0, -c[0]], [0, 1.0, -c[1]], [0, 0, 1]])
+
+
 def _fit(src: np.ndarray, dst: np.ndarray, w: np.ndarray, model: str) -> np.ndarray:
+    if model == "similarity":
+        return fit_similarity_lsq(src, dst, w)
     if model == "affine":
         return fit_affine_lsq(src, dst, w)
     if model == "homography":
@@ -126,6 +145,7 @@ def blocked_cv(src: np.ndarray, dst: np.ndarray, w: np.ndarray, H0: np.ndarray, 
     ub, inv = np.unique(bid, return_inverse=True)
     fold = (np.random.default_rng(seed).permutation(len(ub)) % k)[inv]
     errs: dict[str, list[np.ndarray]] = {m: [] for m in (*models, "feature")}
+    blocks: list[np.ndarray] = []
     for f in range(k):
         test = fold == f
         if test.sum() == 0 or (~test).sum() < 8:
@@ -141,11 +161,20 @@ def blocked_cv(src: np.ndarray, dst: np.ndarray, w: np.ndarray, H0: np.ndarray, 
         ok = r1 <= bound
         for m, v in r.items():
             errs[m].append(v[ok])
-    out = {}
+        blocks.append(inv[test][ok])
+    out: dict[str, float] = {}
     for m, v in errs.items():
         a = np.concatenate(v) if v else np.zeros(0)
         out[m] = float(np.sqrt(np.mean(a**2))) if a.size else float("inf")
     out["refit"] = out[models[0]]
+    if blocks:  # each model's blocks' mean held-out squared residual, and its standard error
+        b = np.concatenate(blocks)
+        n = np.bincount(b)
+        has = n > 0
+        for m in models:
+            v = np.bincount(b, np.concatenate(errs[m]) ** 2)[has] / n[has]
+            out[f"block_mse_{m}"] = float(v.mean())
+            out[f"block_se_{m}"] = float(v.std() / np.sqrt(len(v))) if len(v) > 1 else 0.0
     return out
 
 
@@ -184,8 +213,10 @@ def dense_fit(
     t0 = time.perf_counter()
     c = merged(conf)
     requested = str(c["model"])
-    if requested not in ("homography", "affine", "auto"):
+    if requested not in ("homography", "affine", "similarity", "auto"):
         raise ValueError(f"unknown global_fit model {requested!r}")
+    if str(c["auto_rule"]) not in ("gain", "one_se"):
+        raise ValueError(f"unknown global_fit auto_rule {c['auto_rule']!r} (gain | one_se)")
     if requested == "auto":  # iterate with the affine map, then choose by blocked CV
         c["model"] = "affine"
     rc = refine_merged(refine_conf)
@@ -243,7 +274,16 @@ def dense_fit(
     cover = cover_fraction(src[keep], qvalid)
     seed = int(rc.get("seed", 0))
     block = float(c["cv_block_windows"]) * win
-    if requested == "auto":
+    if requested == "auto" and c.get("auto_rule") == "one_se":
+        models = ("similarity", "affine", "homography")
+        cv = blocked_cv(src, dst, wts, H0, px, block, c, seed, models)
+        mse = {m: cv.get(f"block_mse_{m}", float("inf")) for m in models}
+        best = min(models, key=lambda m: mse[m])
+        bound = mse[best] + cv.get(f"block_se_{best}", 0.0)
+        c["model"] = next(m for m in models if mse[m] <= bound)
+        Hc, keep = robust_fit(src, dst, wts, px, c)
+        cv["refit"] = cv[c["model"]]
+    elif requested == "auto":
         cv = blocked_cv(src, dst, wts, H0, px, block, c, seed, ("affine", "homography"))
         if cv["homography"] < (1 - float(c["min_gain"])) * cv["affine"]:
             c["model"] = "homography"

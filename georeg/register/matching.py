@@ -270,10 +270,10 @@ def fit_homography(
             break
         if inl.sum() < similarity_below:
             # a handful of inliers: even an affine map's shear and anisotropy extrapolate badly
-            Hls, cand, keep = _similarity_lsq(src[inl], dst[inl]), "similarity", 0.8
+            Hls, cand, keep = similarity_lsq(src[inl], dst[inl]), "similarity", 0.8
         elif inl.sum() < affine_below:
             # too few inliers to pin 8 degrees of freedom: perspective terms would extrapolate wildly
-            Hls, cand, keep = _affine_lsq(src[inl], dst[inl]), "affine", 0.8
+            Hls, cand, keep = affine_lsq(src[inl], dst[inl]), "affine", 0.8
         else:
             Hls, _m = cv2.findHomography(src[inl], dst[inl], 0)
             cand, keep = "homography", 1.0
@@ -294,14 +294,14 @@ def fit_homography(
     )
 
 
-def _affine_lsq(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+def affine_lsq(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Least-squares affine map src -> dst as a 3x3 matrix."""
     A = np.c_[src.astype(np.float64), np.ones(len(src))]
     sol, *_ = np.linalg.lstsq(A, dst.astype(np.float64), rcond=None)
     return np.vstack([sol.T, [0.0, 0.0, 1.0]])
 
 
-def _similarity_lsq(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+def similarity_lsq(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Least-squares similarity (rotation, scale, shift; no mirror) src -> dst as a 3x3 matrix:
     x' = a x - b y + tx, y' = b x + a y + ty."""
     x, y = src[:, 0].astype(np.float64), src[:, 1].astype(np.float64)

@@ -9,14 +9,14 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from georeg.index.features import dequantize, detect_and_describe, resample
-from georeg.register import acceptance, crossspectral, matching
+from georeg.register import acceptance, crossspectral, matching, model_choice
 
 log = logging.getLogger(__name__)
 
@@ -362,6 +362,8 @@ def verify(
     if fit is None:
         rec.update(reason="fewer than 4 matches", seconds=time.perf_counter() - t0)
         return rec, m, None
+    if dec["accepted"] and fit.H is not None:
+        fit = final_model(fit, m, source.gsd_m, conf.get("ransac", {}), rec)
     rec.update(
         inliers=fit.n_inliers,
         accepted=bool(dec["accepted"]),
@@ -377,6 +379,31 @@ def verify(
         seconds=time.perf_counter() - t0,
     )
     return rec, m, fit
+
+
+def final_model(
+    fit: matching.HomographyFit,
+    m: matching.Matches,
+    map_px_m: float,
+    ransac_conf: dict[str, Any],
+    rec: dict[str, Any],
+) -> matching.HomographyFit:
+    """An accepted fit refitted to its inliers with the model chosen by leave-one-out CV
+    (``register.ransac.final_model: loo``; georeg.register.model_choice), the same inliers,
+    residuals re-measured; ``rec["final_model"]`` says which model and why. ``ransac`` (or a
+    model that cannot be cross-validated) keeps the fit as it is."""
+    how = str(ransac_conf.get("final_model", "loo"))
+    if how not in ("loo", "ransac"):
+        raise ValueError(f"unknown register.ransac.final_model {how!r} (loo | ransac)")
+    if how == "ransac":
+        return fit
+    H, info = model_choice.choose_model(m.q_xy[fit.inliers], m.m_xy[fit.inliers], map_px_m)
+    rec["final_model"] = info
+    if H is None:
+        return fit
+    res = np.linalg.norm(matching.apply_h(H, m.q_xy) - m.m_xy, axis=1) / map_px_m
+    return replace(fit, H=H, residual_px=np.where(np.isfinite(res), res, np.inf),
+                   info={**fit.info, "model": info["model"]})  # fmt: skip
 
 
 # ----------------------------------------------------------------------------- candidates
