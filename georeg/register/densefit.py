@@ -36,7 +36,7 @@ DEFAULTS: dict[str, Any] = {
     "min_gain": 0.1,  # the refit's CV residual must be this fraction below the feature fit's
     # auto: gain (affine unless the homography's CV is min_gain lower) | one_se (the simplest of
     # similarity, affine, homography within one standard error of the lowest blocked CV)
-    "auto_rule": "gain",
+    "auto_rule": "one_se",
     "converged_px": 0.05,  # stop when the footprint moves less than this (query px)
     "model": "auto",  # auto (auto_rule) | homography | affine | similarity
 }
