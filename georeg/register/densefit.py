@@ -21,6 +21,8 @@ from typing import Any
 import numpy as np
 
 from georeg.register.geolocation import apply_h, ground_px
+from georeg.register.matching import similarity_lsq
+from georeg.register.model_choice import one_se_choice
 
 log = logging.getLogger(__name__)
 
@@ -86,13 +88,7 @@ def fit_similarity_lsq(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = 
     """Weighted least-squares similarity (rotation, scale, shift) query px src (N, 2) -> map
     x, y dst (N, 2, y up: proper in (x, -y)) as a 3 x 3 matrix; N >= 2."""
     c = src.mean(0)
-    x, y = (src - c).T
-    one, zero = np.ones(len(src)), np.zeros(len(src))
-    sw = np.sqrt(np.ones(len(src)) if w is None else np.asarray(w, float))
-    A = np.r_[np.c_[x, -y, one, zero] * sw[:, None], np.c_[y, x, zero, one] * sw[:, None]]
-    b = np.r_[dst[:, 0] * sw, -dst[:, 1] * sw]
-    a, bb, tx, ty = np.linalg.lstsq(A, b, rcond=None)[0]
-    S = np.array([[a, -bb, tx], [bb, a, ty], [0.0, 0.0, 1.0]])
+    S = similarity_lsq(src - c, dst * [1.0, -1.0], w)
     return np.diag([1.0, -1.0, 1.0]) @ S @ np.array([[1.0, 0, -c[0]], [0, 1.0, -c[1]], [0, 0, 1]])
 
 
@@ -277,11 +273,10 @@ def dense_fit(
     if requested == "auto" and c.get("auto_rule") == "one_se":
         models = ("similarity", "affine", "homography")
         cv = blocked_cv(src, dst, wts, H0, px, block, c, seed, models)
-        mse = {m: cv.get(f"block_mse_{m}", float("inf")) for m in models}
-        best = min(models, key=lambda m: mse[m])
-        bound = mse[best] + cv.get(f"block_se_{best}", 0.0)
-        c["model"] = next(m for m in models if mse[m] <= bound)
-        Hc, keep = robust_fit(src, dst, wts, px, c)
+        c["model"] = one_se_choice({m: cv.get(f"block_mse_{m}", float("inf")) for m in models},
+                                   {m: cv.get(f"block_se_{m}", 0.0) for m in models})  # fmt: skip
+        if c["model"] != "affine":  # the iterations' fit is already the affine one
+            Hc, keep = robust_fit(src, dst, wts, px, c)
         cv["refit"] = cv[c["model"]]
     elif requested == "auto":
         cv = blocked_cv(src, dst, wts, H0, px, block, c, seed, ("affine", "homography"))

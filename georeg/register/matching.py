@@ -301,13 +301,14 @@ def affine_lsq(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     return np.vstack([sol.T, [0.0, 0.0, 1.0]])
 
 
-def similarity_lsq(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """Least-squares similarity (rotation, scale, shift; no mirror) src -> dst as a 3x3 matrix:
-    x' = a x - b y + tx, y' = b x + a y + ty."""
+def similarity_lsq(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """(Weighted) least-squares similarity (rotation, scale, shift; no mirror) src -> dst as a
+    3x3 matrix: x' = a x - b y + tx, y' = b x + a y + ty."""
     x, y = src[:, 0].astype(np.float64), src[:, 1].astype(np.float64)
     one, zero = np.ones(len(src)), np.zeros(len(src))
-    A = np.r_[np.c_[x, -y, one, zero], np.c_[y, x, zero, one]]
-    b = np.r_[dst[:, 0], dst[:, 1]].astype(np.float64)
+    sw = np.sqrt(one if w is None else np.asarray(w, np.float64))
+    A = np.r_[np.c_[x, -y, one, zero] * sw[:, None], np.c_[y, x, zero, one] * sw[:, None]]
+    b = np.r_[dst[:, 0] * sw, dst[:, 1] * sw].astype(np.float64)
     (a, bb, tx, ty), *_ = np.linalg.lstsq(A, b, rcond=None)
     return np.array([[a, -bb, tx], [bb, a, ty], [0.0, 0.0, 1.0]])
 

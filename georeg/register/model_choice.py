@@ -36,6 +36,13 @@ def fit_model(name: str, src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
     raise ValueError(f"unknown model {name!r} (expected one of {MODELS})")
 
 
+def one_se_choice(mse: dict[str, float], se: dict[str, float]) -> str:
+    """The first model of ``mse`` (simplest first) whose mean held-out squared residual is within
+    one standard error ``se`` of the lowest (the one-standard-error rule)."""
+    best = min(mse, key=lambda n: mse[n])
+    return next(n for n in mse if mse[n] <= mse[best] + se[best])
+
+
 def loo_squared_errors(name: str, src: np.ndarray, dst: np.ndarray) -> np.ndarray | None:
     """Squared residual of each point predicted by ``name`` fitted to all the others, or None
     when the model cannot be cross-validated (too few points, a degenerate fit)."""
@@ -76,9 +83,8 @@ def choose_model(
     info: dict[str, Any] = {"model": None, "loo_rms_px": cv, "inliers": len(q)}
     if not ok:
         return None, info
-    best = min(ok, key=lambda n: ok[n].mean())
-    bound = ok[best].mean() + ok[best].std() / np.sqrt(len(q))
-    chosen = next(n for n in MODELS if n in ok and ok[n].mean() <= bound)
+    chosen = one_se_choice({n: float(e.mean()) for n, e in ok.items()},
+                           {n: float(e.std() / np.sqrt(len(e))) for n, e in ok.items()})  # fmt: skip
     Hn = fit_model(chosen, src, dst)
     if Hn is None:
         return None, info
