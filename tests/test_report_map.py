@@ -180,19 +180,34 @@ def _ncc(a: np.ndarray, b: np.ndarray) -> float:
     return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum() + 1e-12))
 
 
-def _overlay_vs_map(run_dir: Path, rgba: np.ndarray, bounds: list[float]) -> float:
+def _ortho_gray(path: Path, channel: int | None = None) -> np.ndarray:
+    """The orthophoto as float32 luminance (or one channel)."""
+    with rasterio.open(path) as ds:
+        rgb = ds.read()
+    if channel is not None:
+        return rgb[channel].astype(np.float32)
+    return cv2.cvtColor(np.moveaxis(rgb, 0, -1), cv2.COLOR_RGB2GRAY).astype(np.float32)
+
+
+def _ncc_under(gray: np.ndarray, rgba: np.ndarray, bounds: list[float],
+               high_pass: bool = False) -> float:
     """Correlation of a drawn query image with the orthophoto under it (where it is opaque)."""
-    with rasterio.open(run_dir / "map/ortho.tif") as ds:
-        gray = cv2.cvtColor(np.moveaxis(ds.read(), 0, -1), cv2.COLOR_RGB2GRAY).astype(np.float32)
     c0, r0, c1, r1 = bounds
     h, w = rgba.shape[:2]
     mc, mr = np.meshgrid(c0 + (np.arange(w) + 0.5) * (c1 - c0) / w,
                          r0 + (np.arange(h) + 0.5) * (r1 - r0) / h)  # fmt: skip
     under = cv2.remap(gray, (mc - 0.5).astype(np.float32), (mr - 0.5).astype(np.float32),
                       cv2.INTER_LINEAR)  # fmt: skip
-    m = rgba[..., 3] > 0
+    drawn = rgba[..., 0].astype(np.float32)
+    if high_pass:  # detail only (a smooth real orthophoto correlates with itself shifted)
+        drawn, under = (a - cv2.GaussianBlur(a, (0, 0), 3) for a in (drawn, under))
+    m = cv2.erode((rgba[..., 3] > 0).astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
     assert m.sum() > 1000
-    return _ncc(rgba[..., 0][m].astype(float), under[m].astype(float))
+    return _ncc(drawn[m].astype(float), under[m].astype(float))
+
+
+def _overlay_vs_map(run_dir: Path, rgba: np.ndarray, bounds: list[float]) -> float:
+    return _ncc_under(_ortho_gray(run_dir / "map/ortho.tif"), rgba, bounds)
 
 
 def test_query_image_lands_on_the_map_through_its_geolocation(run_dir: Path) -> None:
@@ -353,4 +368,99 @@ def test_map_view_renders_toggles_and_clicks_in_chromium(run_dir: Path, tmp_path
         # the mouse position in the map CRS
         b.call("Input.dispatchMouseEvent", type="mouseMoved", x=x0 + w / 2, y=y0 + h / 2)
         assert "EPSG:32611" in b.evaluate("document.querySelector('.georeg-pos').textContent")
+        assert b.errors() == []
+
+
+# ----------------------------------------------------------------------------- real data
+
+
+@pytest.fixture(scope="module")
+def odm_view(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    """The map view over the real ODM drone orthophoto (frames_dev/odm, 0.2 m): its two frames at
+    their surveyed poses, and a query band cut from the real orthophoto through a known
+    geolocation (H plus a wobble)."""
+    case = shared_data / "frames_dev" / "odm"
+    root = tmp_path_factory.mktemp("map_view_odm")
+    with rasterio.open(case / "map_ortho.tif") as ds:
+        rgb, T, crs = ds.read(), ds.transform, ds.crs
+    (root / "grid.json").write_text(json.dumps({"crs": crs.to_wkt(), "transform": list(T)[:6],
+                                                "width": rgb.shape[2], "height": rgb.shape[1]}))  # fmt: skip
+    H = _h(T.c + 120.0, T.f - 60.0, -30.0, gsd=0.5)
+    c, r = np.meshgrid(np.arange(QW, dtype=float), np.arange(QH, dtype=float))
+    p = np.stack([c, r, np.ones_like(c)], -1) @ H.T
+    x = p[..., 0] / p[..., 2] + 2.0 * np.sin(r / QH * 2 * np.pi)  # 10 map px of wobble
+    y = p[..., 1] / p[..., 2]
+    green = rgb[1]
+    col = ((x - T.c) / T.a - 0.5).astype(np.float32)
+    row = ((y - T.f) / T.e - 0.5).astype(np.float32)
+    b = cv2.remap(green, col, row, cv2.INTER_LINEAR, borderValue=0)
+    band = np.clip(b, 1, 255).astype(np.uint8) * (b > 0)  # 0 = nodata, as band.tif
+    q = root / "q"
+    _write(q / "band.tif", band, nodata=0)
+    (q / "registration.json").write_text(json.dumps(
+        {"status": "registered", "width": QW, "height": QH, "homography": H.tolist()}))  # fmt: skip
+    write_geolocation(q / "geolocation.tif", H, QW, QH, None, crs.to_wkt(), xy=(x, y))
+    truth = {t.stem: json.loads(t.read_text()) for t in sorted((case / "truth").glob("*.json"))}
+    poses = [{"image": f"queries/{k}.png", "status": "registered", "inliers": 200,
+              "camera_center_xyz": t["camera_center_xyz"], "R_world_to_cam": t["R_world_to_cam"],
+              "footprint_xy": [v[:2] for v in t["footprint_xyz"]]} for k, t in truth.items()]  # fmt: skip
+    (root / "poses.json").write_text(json.dumps(poses))
+    write_map_view(root / "report/map.html", root / "report/map", root / "grid.json",
+                   case / "map_ortho.tif",
+                   [QuerySource("real", q / "registration.json", None, q / "band.tif",
+                                q / "geolocation.tif")],
+                   [FrameSetSource("odm", root / "poses.json")])  # fmt: skip
+    return root, truth
+
+
+@pytest.mark.shared
+def test_real_orthophoto_query_and_surveyed_cameras(odm_view: tuple[Path, dict],
+                                                    shared_data: Path) -> None:  # fmt: skip
+    root, truth = odm_view
+    data = _data(root)
+    frame = MapFrame.from_grid(root / "grid.json")
+    # the drawn query lies on the real orthophoto where its geolocation says, not where H says
+    green = _ortho_gray(shared_data / "frames_dev/odm/map_ortho.tif", channel=1)
+    q = data["queries"][0]
+    img = cv2.imread(str(root / "report" / q["overlay"]["src"]), cv2.IMREAD_UNCHANGED)
+    drawn = _ncc_under(green, cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA), q["overlay"]["bounds"], True)
+    with rasterio.open(root / "q/band.tif") as ds:
+        band = ds.read(1)
+    H = json.loads((root / "q/registration.json").read_text())["homography"]
+    h_only, b = warp_query(band, None, H, frame)
+    by_h = _ncc_under(green, h_only, b, True)
+    assert drawn > 0.75 and by_h < 0.4  # measured 0.86 and 0.22
+    # the surveyed cameras: at their centres, looking at the ground point of the image centre
+    feats = data["features"]["features"]
+    for name, t in truth.items():
+        cam = next(f for f in feats if f["properties"]["kind"] == "camera"
+                   and f["properties"]["name"] == name)  # fmt: skip
+        centre = frame.to_px(t["camera_center_xyz"][:2])[0]
+        assert cam["geometry"]["coordinates"] == pytest.approx(centre, abs=0.01)
+        look = next(f for f in feats if f["properties"]["kind"] == "look"
+                    and f["properties"]["name"] == name)  # fmt: skip
+        a, e = np.asarray(look["geometry"]["coordinates"])
+        g = frame.to_px(t["ground_point_of_image_centre"][:2])[0]
+        ang = np.degrees(np.arctan2(*(e - a)[::-1]) - np.arctan2(*(g - a)[::-1]))
+        assert abs((ang + 180) % 360 - 180) < 5, name
+
+
+@pytest.mark.shared
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="/usr/bin/chromium is absent")
+def test_real_map_view_renders_in_chromium(odm_view: tuple[Path, dict], tmp_path: Path) -> None:
+    root, _ = odm_view
+    with HeadlessChromium(tmp_path / "profile", 1400, 900) as b:
+        b.open((root / "report/map.html").resolve().as_uri())
+        b.wait_for("document.body.dataset.ready === '1' && document.body.dataset.ortho === 'loaded'")
+        b.wait_for("Array.from(document.querySelectorAll('img.georeg-query-image'))"
+                   ".every(i => i.complete && i.naturalWidth > 0)")  # fmt: skip
+        shot = cv2.imdecode(np.frombuffer(b.screenshot(), np.uint8), cv2.IMREAD_COLOR)
+        (tmp_path / "shot.png").write_bytes(cv2.imencode(".png", shot)[1].tobytes())
+        x0, y0, w, h = (int(v) for v in b.evaluate(
+            "(r => [r.left, r.top, r.width, r.height])"
+            "(document.getElementById('map').getBoundingClientRect())"))  # fmt: skip
+        area = shot[y0 : y0 + h, x0 : x0 + w]
+        assert area.std() > 25 and len(np.unique(area.reshape(-1, 3) // 16, axis=0)) > 200
+        assert b.evaluate("document.querySelectorAll('path.georeg-camera').length") == 2
+        assert b.evaluate("document.querySelectorAll('path.georeg-frame_footprint').length") == 2
         assert b.errors() == []
