@@ -26,7 +26,13 @@ from rasterio.crs import CRS
 from rasterio.transform import Affine
 
 from georeg.register.geolocation import write_geolocation
-from georeg.report.map_data import MapFrame, look_end, warp_query
+from georeg.report.map_data import (
+    MapFrame,
+    look_end,
+    lookup_residual,
+    query_lookup,
+    warp_query,
+)
 from georeg.report.map_view import FrameSetSource, QuerySource, write_map_view
 
 MAP_T = Affine(0.5, 0, 500_000.0, 0, -0.5, 4_100_400.0)  # 1200 x 800 px at 0.5 m
@@ -225,6 +231,22 @@ def test_query_image_lands_on_the_map_through_its_geolocation(run_dir: Path) -> 
     assert _overlay_vs_map(run_dir, h_only, b) < 0.75
     lost = next(q for q in data["queries"] if q["name"] == "lost")
     assert lost["overlay"] is None  # nothing registered, nothing drawn
+
+
+def test_lookup_inverts_the_geolocation(run_dir: Path) -> None:
+    """Each drawn pixel shows the query pixel whose geolocation lands on it (to 0.05 map px),
+    where the homography alone is off by the wobble (8 map px)."""
+    frame = MapFrame.from_grid(run_dir / "map/grid.json")
+    H = _h(500_110.0, 4_100_330.0, 25.0)
+    geo = _geo_xy(H, WOBBLE_M)
+    fixed = lookup_residual(query_lookup((QH, QW), geo, H, frame))
+    plain = lookup_residual(query_lookup((QH, QW), geo, H, frame, iterations=0))
+    assert len(fixed) > 20_000 and np.median(fixed) < 0.05 and np.percentile(fixed, 99) < 0.2
+    assert 4 < np.median(plain) < 8.5 and plain.max() > 7.5
+    # a large query is decimated (every k-th pixel), still drawn at its place
+    lk = query_lookup((QH, QW), geo, H, frame, max_px=60)
+    assert lk.k == 3 and max(lk.qc.shape) <= 60
+    assert np.median(lookup_residual(lk)) < 0.2
 
 
 def test_features_are_in_map_pixels_with_status_and_errors(run_dir: Path) -> None:

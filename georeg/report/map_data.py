@@ -140,21 +140,41 @@ def _apply(A: np.ndarray, c: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.
     return (A[0, 0] * c + A[0, 1] * r + A[0, 2]) / den, (A[1, 0] * c + A[1, 1] * r + A[1, 2]) / den
 
 
-def warp_query(band: np.ndarray, geo_xy: tuple[np.ndarray, np.ndarray] | None, H: Any,
-               frame: MapFrame, max_px: int = 1024, iterations: int = 4) -> tuple[np.ndarray, list[float]] | None:  # fmt: skip
-    """The query band (2-D, 0 = nodata) drawn in the map frame: (RGBA image, map pixel bounds
-    [c0, r0, c1, r1]); None when there is nothing registered to draw.
+@dataclass
+class QueryLookup:
+    """Where each pixel of a query's drawn image comes from: the (decimated) query pixel
+    ``qc``, ``qr`` under each overlay pixel centre, the overlay's map pixel ``bounds`` [c0, r0,
+    c1, r1], the decimation ``k`` and the geolocation in map pixels ``gc``, ``gr`` (decimated)."""
 
-    The image covers the footprint's bounding box at about the query's own resolution (at most
-    ``max_px`` per side). Each of its pixels looks up the query pixel whose geolocation lands on
-    it: q = A^-1(m - d(q)), iterated from q = A^-1(m), where A is H in map pixels and d the
-    residual of the geolocation from A (zero without a geolocation raster)."""
-    k = max(1, math.ceil(max(band.shape) / (2 * max_px)))  # a large query: every k-th pixel
+    qc: np.ndarray
+    qr: np.ndarray
+    bounds: list[float]
+    k: int
+    gc: np.ndarray
+    gr: np.ndarray
+
+    def centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """Map pixel coordinates of the overlay pixel centres."""
+        c0, r0, c1, r1 = self.bounds
+        h, w = self.qc.shape
+        return np.meshgrid(c0 + (np.arange(w) + 0.5) * (c1 - c0) / w,
+                           r0 + (np.arange(h) + 0.5) * (r1 - r0) / h)  # fmt: skip
+
+
+def query_lookup(shape: tuple[int, int], geo_xy: tuple[np.ndarray, np.ndarray] | None, H: Any,
+                 frame: MapFrame, max_px: int = 1024, iterations: int = 4) -> QueryLookup | None:  # fmt: skip
+    """Inverse of a query's geolocation on the overlay grid; None when nothing is registered.
+
+    The overlay covers the footprint's bounding box at about the query's own resolution (at most
+    ``max_px`` per side; a query larger than 2 ``max_px`` is decimated to every k-th pixel). Each
+    overlay pixel centre m looks up the query pixel whose geolocation lands on it:
+    q = A^-1(m - d(q)), iterated ``iterations`` times from q = A^-1(m), where A is H in map
+    pixels and d the residual of the geolocation from A (0 iterations: H alone)."""
+    k = max(1, math.ceil(max(shape) / (2 * max_px)))
     if k > 1:
-        band = band[::k, ::k]
         geo_xy = None if geo_xy is None else (geo_xy[0][::k, ::k], geo_xy[1][::k, ::k])
         H = None if H is None else np.asarray(H, np.float64) @ np.diag([k, k, 1.0])
-    h, w = band.shape
+    h, w = len(range(0, shape[0], k)), len(range(0, shape[1], k))
     A = None if H is None else frame.px_matrix() @ np.asarray(H, np.float64)
     cols, rows = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     if geo_xy is not None and np.isfinite(geo_xy[0]).any():
@@ -183,7 +203,6 @@ def warp_query(band: np.ndarray, geo_xy: tuple[np.ndarray, np.ndarray] | None, H
     res = max(step, max(c1 - c0, r1 - r0) / max_px)
     ow, oh = max(1, math.ceil((c1 - c0) / res)), max(1, math.ceil((r1 - r0) / res))
     c1, r1 = c0 + ow * res, r0 + oh * res
-    # each overlay pixel centre (map pixel coordinates) -> the query pixel that lands on it
     tc, tr = np.meshgrid(c0 + (np.arange(ow) + 0.5) * res, r0 + (np.arange(oh) + 0.5) * res)
     ac, ar = _apply(A, cols, rows)
     d = np.dstack([np.where(ok, gc - ac, 0), np.where(ok, gr - ar, 0)]).astype(np.float32)
@@ -193,16 +212,38 @@ def warp_query(band: np.ndarray, geo_xy: tuple[np.ndarray, np.ndarray] | None, H
         dd = cv2.remap(d, qc.astype(np.float32), qr.astype(np.float32), cv2.INTER_LINEAR,
                        borderMode=cv2.BORDER_REPLICATE)  # fmt: skip
         qc, qr = _apply(Ainv, tc - dd[..., 0], tr - dd[..., 1])
-    valid = band > 0
-    gray = _stretch(band, valid)
-    mapx, mapy = qc.astype(np.float32), qr.astype(np.float32)
-    img = cv2.remap(gray, mapx, mapy, cv2.INTER_LINEAR, borderValue=0)
-    inside = cv2.remap((valid & ok).astype(np.uint8) * 255, mapx, mapy, cv2.INTER_NEAREST,
-                       borderValue=0)  # fmt: skip
+    return QueryLookup(qc, qr, [c0, r0, c1, r1], k, gc, gr)
+
+
+def lookup_residual(lk: QueryLookup) -> np.ndarray:
+    """Drawing error (map px) of each overlay pixel inside the footprint: the distance between its
+    centre m and the geolocation G(q) of the query position q it shows (G bilinear)."""
+    ok = (np.isfinite(lk.gc) & np.isfinite(lk.gr)).astype(np.float32)
+    mx, my = lk.qc.astype(np.float32), lk.qr.astype(np.float32)
+    g = np.dstack([np.nan_to_num(lk.gc), np.nan_to_num(lk.gr)]).astype(np.float64)
+    at = cv2.remap(g, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    inside = cv2.remap(ok, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    mc, mr = lk.centres()
+    sel = inside > 0.999
+    return np.hypot(at[..., 0] - mc, at[..., 1] - mr)[sel]
+
+
+def warp_query(band: np.ndarray, geo_xy: tuple[np.ndarray, np.ndarray] | None, H: Any,
+               frame: MapFrame, max_px: int = 1024, iterations: int = 4) -> tuple[np.ndarray, list[float]] | None:  # fmt: skip
+    """The query band (2-D, 0 = nodata) drawn in the map frame through ``query_lookup``: (RGBA
+    image, map pixel bounds [c0, r0, c1, r1]); None when there is nothing registered to draw."""
+    lk = query_lookup(band.shape, geo_xy, H, frame, max_px, iterations)
+    if lk is None:
+        return None
+    band = band[:: lk.k, :: lk.k]
+    valid = (band > 0) & np.isfinite(lk.gc) & np.isfinite(lk.gr)
+    mapx, mapy = lk.qc.astype(np.float32), lk.qr.astype(np.float32)
+    img = cv2.remap(_stretch(band, valid), mapx, mapy, cv2.INTER_LINEAR, borderValue=0)
+    inside = cv2.remap(valid.astype(np.uint8) * 255, mapx, mapy, cv2.INTER_NEAREST, borderValue=0)
     alpha = np.where(inside > 0, 255, 0).astype(np.uint8)
     g = img.astype(np.float32)  # a cool tint tells the query from the orthophoto
     rgba = np.dstack([g * 0.72, g * 0.9 + 12, g * 0.8 + 50, alpha]).clip(0, 255).astype(np.uint8)
-    return rgba, [c0, r0, c1, r1]
+    return rgba, lk.bounds
 
 
 # ----------------------------------------------------------------------------- features
