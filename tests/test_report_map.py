@@ -486,3 +486,14 @@ def test_real_map_view_renders_in_chromium(odm_view: tuple[Path, dict], tmp_path
         assert b.evaluate("document.querySelectorAll('path.georeg-camera').length") == 2
         assert b.evaluate("document.querySelectorAll('path.georeg-frame_footprint').length") == 2
         assert b.errors() == []
+
+
+def test_report_links_the_map_view(tmp_path: Path) -> None:
+    from georeg.report.html import build_report
+
+    out = tmp_path / "report" / "index.html"
+    build_report([], {}, out, log_roots=[], map_html=tmp_path / "report" / "map.html")
+    page = out.read_text()
+    assert page.count('href="map.html"') == 2 and "<script" not in page
+    build_report([], {}, out, log_roots=[])
+    assert "map.html" not in out.read_text()
