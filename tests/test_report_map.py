@@ -129,7 +129,7 @@ def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
                "matches": 130 if found else None, "candidates_tried": 4,
                "lidar_check": {"outcome": "agrees"} if found else None}  # fmt: skip
         if not found:
-            reg["reason"] = "part 0: 4 candidate(s) tried, none accepted"
+            reg["reason"] = "part 0: 4 candidate(s) tried, none accepted </script><b>x</b>"
         (q / "registration.json").write_text(json.dumps(reg))
         write_geolocation(q / "geolocation.tif", H if found else None, QW, QH, None,
                           crs.to_wkt(), xy=(x, y) if found else None)  # fmt: skip
@@ -178,7 +178,7 @@ def _data(run_dir: Path) -> dict:
     html = (run_dir / "report/map.html").read_text()
     m = re.search(r'<script type="application/json" id="map-data">(.*?)</script>', html, re.S)
     assert m, "no embedded data"
-    return json.loads(m.group(1).replace("<\\/", "</"))
+    return json.loads(m.group(1))
 
 
 def _ncc(a: np.ndarray, b: np.ndarray) -> float:
@@ -387,6 +387,7 @@ def test_map_view_renders_toggles_and_clicks_in_chromium(run_dir: Path, tmp_path
         popup = b.wait_for("(p => p && p.textContent.includes('lost') && p.textContent)"
                            "(document.querySelector('.leaflet-popup-content'))")  # fmt: skip
         assert "not_found" in popup and "missed" in popup and "none accepted" in popup
+        assert "</script><b>x</b>" in popup  # markup in the data is shown as text
         # the mouse position in the map CRS
         b.call("Input.dispatchMouseEvent", type="mouseMoved", x=x0 + w / 2, y=y0 + h / 2)
         assert "EPSG:32611" in b.evaluate("document.querySelector('.georeg-pos').textContent")

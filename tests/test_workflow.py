@@ -99,7 +99,7 @@ def test_map_view_of_the_run(demo_run, tmp_path):
     report = demo_run / "results/report"
     assert 'href="map.html"' in (report / "index.html").read_text()
     page = (report / "map.html").read_text()
-    data = json.loads(re.search(r'id="map-data">(.*?)</script>', page, re.S)[1].replace("<\\/", "</"))
+    data = json.loads(re.search(r'id="map-data">(.*?)</script>', page, re.S)[1])
     drawn = {q["name"]: q for q in data["queries"]}
     assert drawn["demo"]["status"] == "registered" and drawn["demo"]["overlay"]
     assert drawn["outside"]["status"] == "not_found" and drawn["outside"]["overlay"] is None

@@ -123,7 +123,7 @@ def _set_entry(s: FrameSetSource, frame: MapFrame) -> tuple[dict, list[dict]]:
 
 def page_html(data: dict[str, Any], assets: str) -> str:
     """The page: the data embedded as JSON, Leaflet and the view's script from ``assets``/."""
-    blob = json.dumps(data, separators=(",", ":")).replace("</", "<\\/")
+    blob = json.dumps(data, separators=(",", ":")).replace("<", "\\u003c")  # no "</script>"
     a = html.escape(assets)
     return (
         '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
