@@ -165,7 +165,10 @@ def run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
                             source="sfm" if i % 8 == 0 else "tracking"))  # fmt: skip
     (video / "poses.json").write_text(json.dumps(vposes))
     (video / "truth.json").write_text(json.dumps(vtruth))
-    (video / "trajectory.json").write_text(json.dumps({"frames": 80}))
+    stats = {"horizontal_m": {"mean": 0.8, "median": 0.72, "p90": 1.31, "max": 2.5}}
+    (video / "trajectory.json").write_text(json.dumps(
+        {"frames": 80, "icp": {"accepted": False, "reason": "gain 0.01 < min_gain 0.02"},
+         "evaluation": {"after_icp": stats}}))  # fmt: skip
     sets = [FrameSetSource("drone", drone / "poses.json", drone / "truth.json"),
             FrameSetSource("video", video / "poses.json", video / "truth.json",
                            video / "trajectory.json")]  # fmt: skip
@@ -282,6 +285,10 @@ def test_features_are_in_map_pixels_with_status_and_errors(run_dir: Path) -> Non
     # the video: its path through the registered frames in order, keyframes and every 10th drawn
     path = next(f for f in feats if f["properties"]["kind"] == "path")
     assert len(path["geometry"]["coordinates"]) == 80 - len(range(9, 80, 17))
+    info = dict(path["properties"]["info"])
+    assert info["frames registered"] == f"{80 - len(range(9, 80, 17))} of 80"
+    assert info["horizontal error (m) median / p90 / max"] == "0.72 / 1.31 / 2.50"
+    assert info["ICP"] == "refused: gain 0.01 < min_gain 0.02"
     vcams = [f for f in feats if f["properties"]["kind"] == "camera" and f["properties"]["set"] == "video"]
     assert 10 <= len(vcams) <= 20
 

@@ -430,8 +430,11 @@ def _trajectory_info(set_name: str, poses: Sequence[Mapping[str, Any]],
     tj = trajectory or {}
     if tj.get("reason"):
         rows.append(["reason", str(tj["reason"])])
+    icp = tj.get("icp") or {}
+    if icp:
+        rows.append(["ICP", "accepted" if icp.get("accepted") else f"refused: {icp.get('reason')}"])
     ev = tj.get("evaluation") or {}
-    fin = ev.get("all") or ev.get("final") or ev
+    fin = ev.get("after_icp") or {}  # georeg.trajectory.pipeline: statistics over all frames
     for k, label in (("horizontal_m", "horizontal error (m)"), ("vertical_m", "vertical error (m)"),
                      ("rotation_deg", "rotation error (deg)")):  # fmt: skip
         s = fin.get(k) if isinstance(fin, Mapping) else None

@@ -186,7 +186,7 @@
     s.innerHTML += '<div class="modes"><label><input type="radio" name="qmode" value="opacity" checked> opacity</label>' +
       '<label><input type="radio" name="qmode" value="swipe"> swipe</label></div>' +
       '<input type="range" id="query-slider" min="0" max="100" value="80">' +
-      '<p class="note">opacity: the query band (grey) over the orthophoto; swipe: the query left of the line, the map right of it.</p>';
+      '<p class="note">opacity: the query band (blue-grey) over the orthophoto; swipe: the query left of the line, the orthophoto right of it.</p>';
     slider = document.getElementById("query-slider");
     slider.addEventListener("input", applyQueryView);
     Array.prototype.forEach.call(s.querySelectorAll("input[name=qmode]"), function (r) {
