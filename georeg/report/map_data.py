@@ -242,7 +242,7 @@ def warp_query(band: np.ndarray, geo_xy: tuple[np.ndarray, np.ndarray] | None, H
     inside = cv2.remap(valid.astype(np.uint8) * 255, mapx, mapy, cv2.INTER_NEAREST, borderValue=0)
     alpha = np.where(inside > 0, 255, 0).astype(np.uint8)
     g = img.astype(np.float32)  # a cool tint tells the query from the orthophoto
-    rgba = np.dstack([g * 0.72, g * 0.9 + 12, g * 0.8 + 50, alpha]).clip(0, 255).astype(np.uint8)
+    rgba = np.dstack([g * 0.75 + 10, g * 0.88 + 25, g * 0.8 + 60, alpha]).clip(0, 255).astype(np.uint8)
     return rgba, lk.bounds
 
 
@@ -403,9 +403,9 @@ def frame_set_features(set_name: str, poses: Sequence[Mapping[str, Any]],
                 feats.append(_feature("Point", _coords(cpx)[0], layer="cameras", kind="camera",
                                       keyframe=bool(p.get("keyframe")), video=video, **common))  # fmt: skip
                 end = look_end(p)
-                if end is not None:
+                if end is not None and (not video or i % max(step, look_every) == 0):
                     feats.append(_feature("LineString", _coords(frame.to_px([C[:2], end])),
-                                          layer="looks", kind="look", **common))  # fmt: skip
+                                          layer="looks", kind="look", video=video, **common))  # fmt: skip
             fp = p.get("footprint_xy")
             if fp and not video:
                 feats.append(_feature("Polygon", [_ring(frame.to_px(np.asarray(fp, float)[:, :2]))],

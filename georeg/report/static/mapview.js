@@ -29,7 +29,7 @@
   map.createPane("queryPane").style.zIndex = 300;
 
   var full = box(data.ortho.bounds);
-  var ortho = L.imageOverlay(data.ortho.src, full, {pane: "orthoPane", attribution: "orthophoto " +
+  var ortho = L.imageOverlay(data.ortho.src, full, {pane: "orthoPane", attribution: "map " +
     data.size[0] + " x " + data.size[1] + " px, " + esc(data.crs.name)});
   ortho.on("load", function () { document.body.setAttribute("data-ortho", "loaded"); });
   ortho.on("error", function () { document.body.setAttribute("data-ortho", "error"); });
@@ -57,7 +57,8 @@
       case "frame_footprint":
         return {color: "#19d3f3", weight: 1.6, fill: true, fillOpacity: 0.08};
       case "look":
-        return {color: "#ffd400", weight: 2, opacity: 0.9};
+        return p.video ? {color: "#ffd400", weight: 1.3, opacity: 0.75} :
+          {color: "#ffd400", weight: 2.2, opacity: 0.95};
       case "path":
         return {color: "#19d3f3", weight: 3.5, opacity: 0.95};
       case "truth_path":
@@ -199,8 +200,8 @@
   function focus(id) {
     var layer = byId[id];
     if (!layer) return;
-    if (layer.getBounds) map.fitBounds(layer.getBounds(), {padding: [40, 40], maxZoom: 2});
-    else if (layer.getLatLng) map.setView(layer.getLatLng(), Math.max(map.getZoom(), 0));
+    if (layer.getBounds) map.fitBounds(layer.getBounds(), {padding: [60, 60], maxZoom: 1, animate: false});
+    else if (layer.getLatLng) map.setView(layer.getLatLng(), Math.max(map.getZoom(), 0), {animate: false});
     if (layer.openPopup) layer.openPopup();
   }
 
