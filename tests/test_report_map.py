@@ -505,3 +505,18 @@ def test_report_links_the_map_view(tmp_path: Path) -> None:
     assert page.count('href="map.html"') == 2 and "<script" not in page
     build_report([], {}, out, log_roots=[])
     assert "map.html" not in out.read_text()
+
+
+def test_bad_inputs_name_the_file_and_leave_no_output(run_dir: Path, tmp_path: Path) -> None:
+    from georeg.io.errors import InputError
+
+    bad = tmp_path / "ortho.tif"
+    bad.write_bytes(b"II*\x00 not a tiff")
+    out = tmp_path / "report"
+    with pytest.raises(InputError, match="ortho.tif"):
+        write_map_view(out / "map.html", out / "map", run_dir / "map/grid.json", bad, [])
+    grid = tmp_path / "grid.json"
+    grid.write_text("{}")
+    with pytest.raises(InputError, match="grid.json"):
+        write_map_view(out / "map.html", out / "map", grid, run_dir / "map/ortho.tif", [])
+    assert not out.exists() or not any(out.iterdir())  # no half-written page or folder

@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 
 from georeg.io.atomic import atomic_path
+from georeg.io.errors import InputError
 from georeg.report.frames_html import _truth_centres, frame_name
 from georeg.report.plotting import crop_rgb, read_crop, truth_outline
 
@@ -50,7 +51,11 @@ class MapFrame:
 
     @classmethod
     def from_grid(cls, path: str | Path) -> MapFrame:
-        g = json.loads(Path(path).read_text())
+        try:
+            g = json.loads(Path(path).read_text())
+            g["transform"], g["width"], g["height"]  # noqa: B018 - the keys the view needs
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise InputError(path, f"not a map grid (grid.json): {exc}") from exc
         return cls(tuple(float(v) for v in g["transform"][:6]), int(g["width"]),  # type: ignore[arg-type]
                    int(g["height"]), g.get("crs"))  # fmt: skip
 
@@ -105,9 +110,12 @@ def write_image(path: str | Path, img: np.ndarray, ext: str, quality: int = 88) 
 
 def render_ortho(ortho: str | Path, frame: MapFrame, out: str | Path, max_px: int = 2048) -> dict:
     """The orthophoto decimated to ``max_px`` per side as JPEG; returns its map pixel bounds."""
-    crop = read_crop(ortho, None, max_px)
+    try:
+        crop = read_crop(ortho, None, max_px)
+    except Exception as exc:  # noqa: BLE001 - rasterio / GDAL errors of a bad file
+        raise InputError(ortho, f"cannot read the orthophoto: {exc}") from exc
     if crop is None:
-        raise FileNotFoundError(f"{ortho}: orthophoto absent")
+        raise InputError(ortho, "the orthophoto is absent")
     rgba = crop_rgb(crop)
     rgb = np.where(rgba[..., 3:] > 0, rgba[..., :3], np.array(NODATA_RGB, np.uint8))
     write_image(out, np.ascontiguousarray(rgb), ".jpg")
