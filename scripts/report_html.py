@@ -23,6 +23,7 @@ def main(smk):
         benchmark_csv=smk.input.benchmark[0] if smk.input.benchmark else None,
         overview_png=smk.input.overview,
         frame_sets=frame_sets,
+        map_html=smk.input.map_view,
     )
 
 

@@ -89,6 +89,38 @@ def test_products_and_overview_written(demo_run):
 
 
 @pytest.mark.slow
+def test_map_view_of_the_run(demo_run, tmp_path):
+    """results/report/map.html: linked from index.html, the query drawn where it registered, and
+    (with Chromium) rendered with its layers and no console error."""
+    import re
+
+    import cv2
+
+    report = demo_run / "results/report"
+    assert 'href="map.html"' in (report / "index.html").read_text()
+    page = (report / "map.html").read_text()
+    data = json.loads(re.search(r'id="map-data">(.*?)</script>', page, re.S)[1])
+    drawn = {q["name"]: q for q in data["queries"]}
+    assert drawn["demo"]["status"] == "registered" and drawn["demo"]["overlay"]
+    assert drawn["outside"]["status"] == "not_found" and drawn["outside"]["overlay"] is None
+    assert (report / drawn["demo"]["overlay"]["src"]).is_file()
+    kinds = [f["properties"]["kind"] for f in data["features"]["features"]]
+    assert kinds.count("query_footprint") == 1 and kinds.count("query_truth") == 2
+    if not Path("/usr/bin/chromium").exists():
+        pytest.skip("/usr/bin/chromium is absent")
+    from chromium_cdp import HeadlessChromium
+
+    with HeadlessChromium(tmp_path / "profile", 1200, 800) as b:
+        b.open((report / "map.html").resolve().as_uri())
+        b.wait_for("document.body.dataset.ready === '1' && document.body.dataset.ortho === 'loaded'")
+        shot = cv2.imdecode(np.frombuffer(b.screenshot(), np.uint8), cv2.IMREAD_COLOR)
+        assert shot.std() > 25
+        assert b.evaluate("document.querySelectorAll('path.georeg-query_footprint').length") == 1
+        assert b.evaluate("document.querySelectorAll('img.georeg-query-image').length") == 1
+        assert b.errors() == []
+
+
+@pytest.mark.slow
 def test_second_run_has_nothing_to_do(demo_run):
     proc = snakemake(demo_run, "-n", "--cores", "2", "--configfile", str(TEST_CONFIG))
     assert proc.returncode == 0, proc.stderr[-2000:]

@@ -19,6 +19,7 @@ import datetime as _dt
 import html
 import json
 import logging
+import os
 import re
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -515,11 +516,13 @@ def build_report(
     benchmark_csv: str | Path | None = None,
     overview_png: str | Path | None = None,
     frame_sets: Mapping[str, Mapping[str, Any]] | None = None,
+    map_html: str | Path | None = None,
 ) -> dict[str, Any]:
     """Write the self-contained report; returns the summary rows (also embedded in the page).
 
     ``frame_sets``: ``{set: {"poses": poses.json, "truth": truth.json or None}}`` adds the frames
-    section (``georeg.report.frames_html``); none: no section."""
+    section (``georeg.report.frames_html``); none: no section. ``map_html``: the map view
+    (``georeg.report.map_view``), linked from the header and the navigation."""
 
     regs = {q.name: _read_json(q.registration) for q in queries}
     evs = {q.name: _read_json(q.evaluation) for q in queries}
@@ -533,7 +536,12 @@ def build_report(
     verdict = f"{n_reg} of {len(rows)} queries registered; " + (
         f"{n_ok} of {n_truth} with truth judged correct." if n_truth else "no truth given."
     )
-    nav = "".join(
+    map_href = (
+        html.escape(os.path.relpath(map_html, Path(out_html).parent).replace(os.sep, "/"))
+        if map_html
+        else None
+    )
+    nav = (f'<a href="{map_href}"><b>map view</b></a>' if map_href else "") + "".join(
         f'<a href="#{a}">{t}</a>'
         for a, t in [
             ("summary-h", "summary"),
@@ -547,6 +555,15 @@ def build_report(
         f"<header><h1>georeg report</h1><p>{html.escape(verdict)} Built {now}.</p></header>",
         f"<main><nav>{nav}</nav>",
         '<h2 id="summary-h">summary</h2>',
+        *(
+            [
+                f'<p class="note"><a href="{map_href}"><b>Open the map view</b></a>: the queries '
+                "drawn on the orthophoto (opacity or swipe), footprints, frame cameras and "
+                "trajectories; click one for its status and errors (works offline).</p>"
+            ]
+            if map_href
+            else []
+        ),
         '<p class="note">outcome: <span class="ok">success</span> = registered with error within '
         'the bound; <span class="bad">FALSE ACCEPT</span> = registered at the wrong place; '
         '<span class="ok">correct not found</span> = the query is not on the map and the system '
@@ -634,9 +651,10 @@ def run_report(
     benchmark_csv: str | Path | None = None,
     overview_png: str | Path | None = None,
     frame_sets: Mapping[str, Mapping[str, Any]] | None = None,
+    map_html: str | Path | None = None,
 ) -> dict[str, Any]:
     """Rule report_html: the page and, when asked, the summary CSV (lists aligned by query);
-    ``frame_sets`` as in ``build_report``."""
+    ``frame_sets`` and ``map_html`` as in ``build_report``."""
     if not (len(names) == len(registrations) == len(evaluations) == len(figure_dirs)):
         raise ValueError("names, registrations, evaluations and figure_dirs differ in length")
     queries = [
@@ -644,7 +662,7 @@ def run_report(
         for n, r, e, f in zip(names, registrations, evaluations, figure_dirs, strict=True)
     ]
     res = build_report(
-        queries, config, out_html, log_roots, benchmark_csv, overview_png, frame_sets
+        queries, config, out_html, log_roots, benchmark_csv, overview_png, frame_sets, map_html
     )
     if out_csv:
         write_summary_csv(res["queries"], out_csv)

@@ -66,8 +66,42 @@ rule report_figures:
         "../../scripts/report_figures.py"
 
 
+# The map view (issue 30): results/report/map.html + its folder results/report/map/ (Leaflet
+# bundled from georeg/report/static, the decimated orthophoto, each registered query's band in
+# the map frame), linked from index.html; opens from the file system, loads nothing remote.
+rule report_map:
+    input:
+        grid=REP_GRID,
+        ortho="results/map/mosaic/ortho.vrt",
+        registration=expand("results/queries/{name}/registration.json", name=QUERIES),
+        evaluation=expand("results/queries/{name}/evaluation.json", name=QUERIES),
+        band=expand("results/queries/{name}/band.tif", name=QUERIES),
+        geolocation=expand("results/queries/{name}/geolocation.tif", name=QUERIES),
+        truth=[t for q in QUERIES if (t := (config["queries"][q] or {}).get("truth"))],
+        frames=expand("results/frames/{fset}/poses.json", fset=FRAME_SETS),
+        trajectories=expand("results/frames/{fset}/trajectory.json", fset=VIDEO_SETS),
+    output:
+        html="results/report/map.html",
+        folder=directory("results/report/map"),
+    params:
+        queries=QUERIES,
+        query_truth=[(config["queries"][q] or {}).get("truth") for q in QUERIES],
+        frame_sets=FRAME_SETS,
+        video_sets=VIDEO_SETS,
+        frame_truth=[(config["frames"][s] or {}).get("truth") for s in FRAME_SETS],
+        sizes={k: REP[k] for k in ("map_max_px", "map_query_px")},
+    log:
+        "logs/report/report_map.log",
+    threads: 1
+    resources:
+        mem_mb=1500,
+    script:
+        "../../scripts/report_map.py"
+
+
 rule report_html:
     input:
+        map_view="results/report/map.html",
         registration=expand("results/queries/{name}/registration.json", name=QUERIES),
         evaluation=expand("results/queries/{name}/evaluation.json", name=QUERIES),
         figures=expand("results/report/figures/{name}", name=QUERIES),
