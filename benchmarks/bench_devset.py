@@ -349,6 +349,11 @@ def main(argv: list[str] | None = None) -> int:
                     help="SRIF: the first N pairs of each half per modality (0 = all 50)")
     ap.add_argument("--puc-first", type=int, default=0, help="Pucallpa: skip the first date pairs")
     ap.add_argument("--puc-crops", type=int, default=2, help="Pucallpa: crops per date pair")
+    ap.add_argument("--reuse", default="",
+                    help="a .jsonl of an earlier run (same set): its records of the methods "
+                    "asked are taken, not run again (a run cut by the machine's load)")
+    ap.add_argument("--reuse-methods", default="sift_plain,wf_default",
+                    help="which methods' records --reuse may take")
     ap.add_argument("--table", help="print the table of a .jsonl record file and stop")
     a = ap.parse_args(argv)
     if a.table:
@@ -389,10 +394,21 @@ def main(argv: list[str] | None = None) -> int:
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     partial = Path(a.out).with_suffix(".jsonl")  # one line per record as it is made
     partial.write_text("")
+    done: dict[tuple[str, str], dict[str, Any]] = {}
+    if a.reuse:
+        for line in Path(a.reuse).read_text().splitlines():
+            r = json.loads(line)
+            if r["method"] in a.reuse_methods.split(","):
+                done[(r.pop("method"), r["query"])] = r
     for qi, q in enumerate(queries):
         setting = q.setting  # type: ignore[attr-defined]
         group = setting if setting == "pucallpa" else f"{setting}_{q.name.split('_')[1]}"
         for name in methods:
+            if (name, q.name) in done:
+                rows[name].append(done[(name, q.name)])
+                with partial.open("a") as f:
+                    f.write(json.dumps({"method": name, **done[(name, q.name)]}) + "\n")
+                continue
             c0 = time.process_time()
             res = run(q, by[q.map_scene], name, a.seed + qi)
             cpu = time.process_time() - c0
