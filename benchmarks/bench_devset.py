@@ -1,0 +1,492 @@
+"""The harder development set (issue 34): SRIF multimodal pairs and Landsat Pucallpa cross-date.
+
+    . /work/main/.venv/bin/activate
+    nice -n 5 python benchmarks/bench_devset.py --sets srif_wide,srif_pair,pucallpa \\
+        --methods sift_plain,wf_default --out benchmarks/out/devset_baseline.json -v
+    nice -n 5 python benchmarks/bench_devset.py --sets srif_wide,srif_pair,pucallpa \\
+        --per-half 5 --puc-first 11 --puc-crops 1 -v --out benchmarks/out/devset_run3.json
+
+Same protocol as benchmarks/bench_crossspectral.py (docs/BENCHMARKS.md "Cross-spectral matching /
+Protocol"): a fixed tuning / checking split, both halves reported, plain SIFT beside every
+figure (here, in the benchmark, never in the library); outcome per query: success = accepted
+with median error within the tolerance, false accept = accepted with a larger error, or any
+acceptance of a query whose true place is not in the map ("outside" / unrelated).
+
+Sets (all from ../shared/data, made by nobody here):
+
+- ``srif_wide``: SRIF (Li, Hu, Zhang, ISPRS J. 204 (2023) 77-88; ../shared/data/srif_dev)
+  Optical-Optical (``oo``), Optical-Infrared (``oi``), Optical-Depth (``od``), 100 pairs each
+  (pair indices 1, 3, ..., 199). **Split by pair index**: tuning = pairs 1-99, checking = pairs
+  101-199 (50 each). Each half is cut into two blocks of 25 consecutive pairs; in each block the
+  references of 20 pairs are laid side by side (shelf packing, 0 = nodata between them) into one
+  mosaic geo-referenced at 1 m pixels in UTM 33N (origin 500000 E, 5000000 N; ``MOSAIC_ORIGIN``),
+  and the references of the 5th, 10th, ..., 25th pair are LEFT OUT: their queries are searched
+  in the block's mosaic and must end not found ("outside") -- unless another reference in the
+  mosaic overlaps theirs (SRIF references are crops of larger scenes and neighbours overlap:
+  ``overlaps``, plain SIFT between the optical references), then they are in the map.
+  A query found on an overlapping copy of its place is right (``places``). Every query (``pair<i>_2``) is
+  searched in all of its mosaic. The query's GSD is taken as known (the project's premise: the
+  query sensor's GSD is known, its rotation is not): 1 m over the scale of the ground truth's
+  linear part.
+- ``srif_pair``: the same 300 pairs pair by pair (map = the query's own reference, 1 m pixels).
+  This stands in for "pair by pair with a location prior" until the ``prior`` of issue 34 item 4
+  (branch ``core``) lands: a prior that keeps the search to the reference's footprint is this.
+- ``pucallpa``: ../shared/data/swir_dates/landsat_pucallpa, 8 dates 1985-2020. The SWIR1 band of
+  one date against the red/green luminance of another, 5-35 years apart: all 28 date pairs,
+  direction alternating; per pair one crop of half the scene's smaller side and one of 0.3-0.45
+  of it, rotated by any angle, rescaled x0.75-1.3 (the protocol's Landsat style, seeded).
+  **Split by date pair**: the 28 pairs sorted by (gap, earlier date), alternately tuning /
+  checking (every gap in both halves). Unrelated: each query against its map with the true
+  footprint (dilated by 10 px) blanked to nodata.
+
+Truth: SRIF ``[gt; 0 0 1]`` maps reference px to query px, MATLAB 1-based (``p2 + 1 = A (p1 +
+1)``), hand-picked, off by 3-5 query px in translation (data README; plain SIFT fits with 15-64
+inliers differ from it by up to 8 query px): success = median error <= 8 query px (the README's
+own scoring of plain SIFT) or 5 map px, whichever is larger; Pucallpa: one grid, exact; 5 map px.
+
+Methods: ``sift_plain`` (OpenCV SIFT, ratio 0.8, MAGSAC, > 5 inliers: the outside baseline),
+``wf_default`` (the workflow's registration stages, georeg.register.fuse.register_query with
+config/config.yaml's ``register`` section, as bench_crossspectral's ``wf_*`` methods). The
+hypothesis sources of issue 34 item 3 (``src_*``: CFOG structure, XFeat; commit cd6ab47) were
+measured here and not kept (docs/experiments/2026-11-26-devset.md). The record says which
+methods ran (``sources`` in the json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_crossspectral as bx  # noqa: E402
+
+ROOT = bx.ROOT
+SHARED = bx.SHARED
+SRIF = SHARED / "srif_dev"
+PUCALLPA = SHARED / "swir_dates" / "landsat_pucallpa"
+MODALITIES = {"oo": "Optical-Optical", "oi": "Optical-Infrared", "od": "Optical-Depth"}
+MOSAIC_ORIGIN = (500000.0, 5000000.0)  # UTM 33N (EPSG:32633), 1 m pixels, north-up
+MOSAIC_GSD = 1.0
+BLOCK = 25  # consecutive pairs per mosaic; every 5th pair's reference is left out
+LEFT_OUT_EVERY = 5
+TOL_QUERY_PX = 8.0  # SRIF success: median error <= 8 query px (the data README's scoring)
+PUC_DATES = (1985, 1990, 1995, 2000, 2005, 2010, 2015, 2020)
+
+
+# ----------------------------------------------------------------------------- SRIF
+
+
+def srif_half(i: int) -> str:
+    """The fixed split by pair index: 1-99 tuning, 101-199 checking."""
+    return "tuning" if i < 100 else "checking"
+
+
+def srif_pairs(mod: str) -> list[int]:
+    d = SRIF / MODALITIES[mod]
+    return sorted(int(p.stem[4:-2]) for p in d.glob("pair*_1.jpg"))
+
+
+def _valid_mask(gray: np.ndarray) -> np.ndarray:
+    """Valid pixels of a SRIF image: not the black fill of a rotated image (JPEG-noisy zeros)."""
+    blur = cv2.blur(gray, (5, 5))
+    m = (blur > 3).astype(np.uint8)
+    return cv2.erode(m, np.ones((5, 5), np.uint8)) > 0
+
+
+def srif_images(mod: str, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(reference u8, query u8 with 0 = nodata, A 3x3 reference px -> query px, 0-based)."""
+    d = SRIF / MODALITIES[mod]
+    ref = cv2.imread(str(d / f"pair{i}_1.jpg"), cv2.IMREAD_GRAYSCALE)
+    qry = cv2.imread(str(d / f"pair{i}_2.jpg"), cv2.IMREAD_GRAYSCALE)
+    if ref is None or qry is None:
+        raise FileNotFoundError(f"SRIF pair {i} of {d} unreadable")
+    A = np.vstack([np.loadtxt(d / f"gt_{i}.txt"), [0, 0, 1.0]])
+    one = np.array([[1, 0, 1], [0, 1, 1], [0, 0, 1.0]])
+    A0 = np.linalg.inv(one) @ A @ one  # 0-based: p2 = A0 p1
+    q = bx._stretch(qry, _valid_mask(qry))
+    return ref, q, A0
+
+
+def overlaps(refs: dict[int, np.ndarray], min_inliers: int = 30) -> dict[tuple[int, int], np.ndarray]:
+    """SRIF references of one set overlap (crops of one scene): (i, j) -> 3 x 3 reference i px ->
+    reference j px, from plain SIFT between the two optical references (same sensor: ratio 0.8,
+    RANSAC similarity 3 px, >= ``min_inliers`` inliers). A query whose reference is left out is
+    still in the map when another reference there overlaps its own (optical-depth pairs 105, 107
+    and 109: 181-216 inliers), and a query may be found on either copy."""
+    sift = cv2.SIFT_create()
+    feats = {i: sift.detectAndCompute(r, None) for i, r in refs.items()}
+    bf = cv2.BFMatcher()
+    out = {}
+    for i in refs:
+        for j in refs:
+            (ki, di), (kj, dj) = feats[i], feats[j]
+            if i >= j or di is None or dj is None or len(di) < 2 or len(dj) < 2:
+                continue
+            g = [a for a, b in bf.knnMatch(di, dj, k=2) if a.distance < 0.8 * b.distance]
+            if len(g) < min_inliers:
+                continue
+            pi = np.float32([ki[a.queryIdx].pt for a in g])
+            pj = np.float32([kj[a.trainIdx].pt for a in g])
+            cv2.setRNGSeed(0)
+            A, inl = cv2.estimateAffinePartial2D(pi, pj, method=cv2.RANSAC,
+                                                 ransacReprojThreshold=3.0)  # fmt: skip
+            if A is None or inl.sum() < min_inliers:
+                continue
+            T = np.vstack([A, [0, 0, 1.0]])
+            out[(i, j)], out[(j, i)] = T, np.linalg.inv(T)
+    return out
+
+
+def pack(sizes: list[tuple[int, int]]) -> tuple[list[tuple[int, int]], tuple[int, int]]:
+    """Shelf packing of (h, w) images into a near-square canvas: (row, col) offsets, (H, W)."""
+    area = sum(h * w for h, w in sizes)
+    width = max(max(w for _, w in sizes), int(math.sqrt(area) * 1.05))
+    offs, r, c, shelf = [], 0, 0, 0
+    for h, w in sizes:
+        if c + w > width:
+            r, c, shelf = r + shelf, 0, 0
+        offs.append((r, c))
+        c += w
+        shelf = max(shelf, h)
+    return offs, (r + shelf, width)
+
+
+def srif_query(mod: str, i: int, q: np.ndarray, A0: np.ndarray, places: list[np.ndarray],
+               map_scene: str, outside: bool = False) -> bx.Query:  # fmt: skip
+    """A SRIF query with its truth grid (12 x 12 valid query px) and the map px of that grid at
+    each of its ``places`` (3 x 3 reference px -> map px: its own reference, and any other
+    reference in the map that overlaps it); no place = not in the map."""
+    s = math.sqrt(abs(np.linalg.det(A0[:2, :2])))  # query px per reference px
+    name = f"{mod}_{i}" + ("_leftout" if outside else "")
+    truth = tmap = None
+    alts: list[np.ndarray] = []
+    if places:
+        n_r, n_c = q.shape
+        uu, vv = np.meshgrid(np.linspace(2, n_c - 3, 12), np.linspace(2, n_r - 3, 12))
+        qp = np.c_[uu.ravel(), vv.ravel()]
+        qp = qp[q[qp[:, 1].astype(int), qp[:, 0].astype(int)] > 0]
+        rp = bx.matching.apply_h(np.linalg.inv(A0), qp)
+        alts = [bx.matching.apply_h(P, rp) for P in places]
+        truth, tmap = qp, alts[0]
+    qq = bx.Query(name, map_scene, map_scene, {"band": q}, MOSAIC_GSD / s, truth, tmap)
+    qq.alts = alts  # type: ignore[attr-defined]
+    qq.tol_px = max(5.0, TOL_QUERY_PX / s)  # type: ignore[attr-defined]
+    qq.half = srif_half(i)  # type: ignore[attr-defined]
+    return qq
+
+
+def build_srif(mods: list[str], wide: bool, pair: bool,
+               per_half: int = 0) -> tuple[list[bx.Scene], list[bx.Query]]:  # fmt: skip
+    """SRIF queries and maps; ``per_half`` > 0: only the first ``per_half`` pairs of each half
+    (one block, one mosaic: a run that fits a loaded machine)."""
+    scenes: list[bx.Scene] = []
+    queries: list[bx.Query] = []
+    for mod in mods:
+        idx = srif_pairs(mod)
+        for half in ("tuning", "checking"):
+            hi = [i for i in idx if srif_half(i) == half]
+            hi = hi[:per_half] if per_half else hi
+            step = per_half or BLOCK
+            for b in range(0, len(hi), step):
+                block = hi[b : b + step]
+                data = {i: srif_images(mod, i) for i in block}
+                if pair:
+                    for i in block:
+                        ref, q, A0 = data[i]
+                        sc = bx.Scene(f"{mod}_{i}_ref", {}, MOSAIC_GSD, np.maximum(ref, 1),
+                                      MOSAIC_GSD, lambda p: p, mod)  # fmt: skip
+                        scenes.append(sc)
+                        qq = srif_query(mod, i, q, A0, [np.eye(3)], sc.name)
+                        qq.name = "pair_" + qq.name
+                        qq.setting = "pair"  # type: ignore[attr-defined]
+                        queries.append(qq)
+                if wide:
+                    inside = [i for k, i in enumerate(block) if (k + 1) % LEFT_OUT_EVERY]
+                    offs, (H, W) = pack([data[i][0].shape for i in inside])
+                    mosaic = np.zeros((H, W), np.uint8)
+                    for i, (r, c) in zip(inside, offs, strict=True):
+                        ref = data[i][0]
+                        mosaic[r : r + ref.shape[0], c : c + ref.shape[1]] = np.maximum(ref, 1)
+                    name = f"{mod}_mosaic_{block[0]}_{block[-1]}"
+                    scenes.append(bx.Scene(name, {}, MOSAIC_GSD, mosaic, MOSAIC_GSD,
+                                           lambda p: p, mod))  # fmt: skip
+                    where = dict(zip(inside, offs, strict=True))
+                    over = overlaps({i: data[i][0] for i in block})
+                    for i in block:
+                        _, q, A0 = data[i]
+                        places = []  # its own reference first, then any overlapping one
+                        for j in sorted(where, key=lambda j: j != i):
+                            r, c = where[j]
+                            T = np.eye(3) if j == i else over.get((i, j))
+                            if T is not None:
+                                places.append(np.array([[1, 0, c], [0, 1, r], [0, 0, 1.0]]) @ T)
+                        qq = srif_query(mod, i, q, A0, places, name, i not in where)
+                        qq.name = "wide_" + qq.name
+                        qq.setting = "wide"  # type: ignore[attr-defined]
+                        queries.append(qq)
+    return scenes, queries
+
+
+def mosaic_geotransform(sc: bx.Scene) -> list[float]:
+    """GDAL geotransform of a mosaic (UTM 33N, 1 m px): the map frame this benchmark gives it."""
+    return [MOSAIC_ORIGIN[0], MOSAIC_GSD, 0.0, MOSAIC_ORIGIN[1], 0.0, -MOSAIC_GSD]
+
+
+# ----------------------------------------------------------------------------- Pucallpa
+
+
+def pucallpa_date_pairs() -> list[tuple[int, int, str]]:
+    """(query date, map date, half): all 28 pairs, sorted by (gap, earlier), halves alternate;
+    the query is the earlier date on even positions, the later on odd ones."""
+    pairs = sorted(
+        ((a, b) for a in PUC_DATES for b in PUC_DATES if a < b), key=lambda p: (p[1] - p[0], p[0])
+    )
+    out = []
+    for k, (a, b) in enumerate(pairs):
+        q, m = (a, b) if (k // 2) % 2 == 0 else (b, a)
+        out.append((q, m, "tuning" if k % 2 == 0 else "checking"))
+    return out
+
+
+def _read_puc(year: int) -> np.ndarray:
+    import rasterio
+
+    with rasterio.open(PUCALLPA / f"{year}.tif") as s:
+        return s.read().astype(np.float32)  # SWIR1, NIR, red, green; 0 = nodata
+
+
+def build_pucallpa(seed: int, unrelated: bool = True, first: int = 0,
+                   crops: int = 2) -> tuple[list[bx.Scene], list[bx.Query]]:  # fmt: skip
+    """Pucallpa queries; ``first``: skip the first date pairs (their queries are drawn all the
+    same, so a query keeps its content whatever is skipped); ``crops`` 1: the half-side crop
+    only."""
+    scenes, queries = [], []
+    cube = {y: _read_puc(y) for y in PUC_DATES}
+    rng = np.random.default_rng(seed)
+    for kp, (qd, md, half) in enumerate(pucallpa_date_pairs()):
+        swir = np.where(cube[qd][0] > 0, cube[qd][0], np.nan)
+        valid = (cube[md][2] > 0) & (cube[md][3] > 0)
+        gray = bx._stretch(0.5 * (cube[md][2] + cube[md][3]), valid)
+        sc = bx.Scene(f"puc_{qd}_on_{md}", {"1.6um": swir}, 90.0, gray, 90.0, lambda p: p,
+                      "pucallpa")  # fmt: skip
+        scenes.append(sc)
+        for k, frac in enumerate((0.5, float(rng.uniform(0.3, 0.45)))):
+            q = bx.make_query(sc, rng, k, frac)
+            if kp < first or k >= crops:
+                continue
+            q.half = half  # type: ignore[attr-defined]
+            q.tol_px = bx.SUCCESS_PX  # type: ignore[attr-defined]
+            q.setting = "pucallpa"  # type: ignore[attr-defined]
+            queries.append(q)
+            if not unrelated:
+                continue
+            # the same map with the query's true footprint (dilated 10 px) blanked
+            hole = np.zeros(gray.shape, np.uint8)
+            n = next(iter(q.bands.values())).shape[0]
+            box = np.array([[0, 0], [n - 1, 0], [n - 1, n - 1], [0, n - 1]], np.float64)
+            A = np.linalg.lstsq(np.c_[q.truth, np.ones(len(q.truth))], q.truth_map, rcond=None)[0]
+            corners = np.c_[box, np.ones(4)] @ A
+            cv2.fillPoly(hole, [corners.round().astype(np.int32)], 1)
+            hole = cv2.dilate(hole, np.ones((21, 21), np.uint8)) > 0
+            other = bx.Scene(f"{sc.name}_without_{q.name}", {}, 90.0, np.where(hole, 0, gray),
+                             90.0, lambda p: p, "pucallpa")  # fmt: skip
+            scenes.append(other)
+            neg = bx.Query(q.name + "_blanked", sc.name, other.name, q.bands, q.gsd, None, None)
+            neg.half, neg.tol_px, neg.setting = half, bx.SUCCESS_PX, "pucallpa"  # type: ignore
+            queries.append(neg)
+    return scenes, queries
+
+
+# ----------------------------------------------------------------------------- methods
+
+METHODS: dict[str, dict[str, Any]] = {
+    "sift_plain": bx.METHODS["sift_plain"],
+    "wf_default": {"pipeline": {}, "bands": 1},
+    # hypothesis sources of issue 34 item 3 were measured here and not kept (CFOG structure:
+    # georeg/register/structure.py, XFeat: georeg/register/learned.py; verified by
+    # georeg/register/candidate.verify): commit cd6ab47 has them, the figures are in
+    # docs/experiments/2026-11-26-devset.md
+}
+
+
+def run(q: bx.Query, sc: bx.Scene, name: str, seed: int) -> dict[str, Any]:
+    return bx.run_method(q, sc, METHODS[name], seed)
+
+
+def judge(q: bx.Query, sc: bx.Scene, res: dict[str, Any]) -> dict[str, Any]:
+    """bench_crossspectral.judge with the query's own tolerance (SRIF: >= 5 query px)."""
+    alts = getattr(q, "alts", None) or []
+    j = bx.judge(q, sc, res)
+    for alt in alts[1:]:  # the nearest place of the query counts
+        q2 = bx.Query(q.name, q.scene, q.map_scene, q.bands, q.gsd, q.truth, alt)
+        j2 = bx.judge(q2, sc, res)
+        if j2["error_px"] is not None and (j["error_px"] is None or j2["error_px"] < j["error_px"]):
+            j = j2
+    if j["outcome"] in ("success", "false_accept") and q.truth is not None:
+        ok = j["error_px"] is not None and j["error_px"] <= q.tol_px  # type: ignore[attr-defined]
+        j["outcome"] = "success" if ok else "false_accept"
+    return j
+
+
+def summarise(r: list[dict[str, Any]]) -> dict[str, Any]:
+    pos = [x for x in r if x["positive"]]
+    ok = [x for x in pos if x["outcome"] == "success"]
+    return {
+        "success": len(ok),
+        "positives": len(pos),
+        "false_accept": sum(x["outcome"] == "false_accept" for x in pos),
+        "unrelated_accepted": sum(x["outcome"] == "false_accept" for x in r if not x["positive"]),
+        "negatives": len(r) - len(pos),
+        "median_error_px": float(np.median([x["error_px"] for x in ok])) if ok else float("nan"),
+        "seconds_per_query": float(np.mean([x["seconds"] for x in r])) if r else float("nan"),
+        "cpu_seconds_per_query": float(np.mean([x["cpu_seconds"] for x in r]))
+        if r
+        else float("nan"),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--sets", default="srif_wide,srif_pair,pucallpa")
+    ap.add_argument("--modalities", default="oo,oi,od")
+    ap.add_argument("--methods", default="sift_plain,wf_default")
+    ap.add_argument("--half", choices=("tuning", "checking", "both"), default="both")
+    ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument("--limit", type=int, default=0, help="first N queries per set (smoke runs)")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "out" / "devset.json"))
+    ap.add_argument("-v", action="store_true")
+    ap.add_argument("--per-half", type=int, default=0,
+                    help="SRIF: the first N pairs of each half per modality (0 = all 50)")
+    ap.add_argument("--puc-first", type=int, default=0, help="Pucallpa: skip the first date pairs")
+    ap.add_argument("--puc-crops", type=int, default=2, help="Pucallpa: crops per date pair")
+    ap.add_argument("--reuse", default="",
+                    help="a .jsonl of an earlier run (same set): its records of the methods "
+                    "asked are taken, not run again (a run cut by the machine's load)")
+    ap.add_argument("--reuse-methods", default="sift_plain,wf_default",
+                    help="which methods' records --reuse may take")
+    ap.add_argument("--table", help="print the table of a .jsonl record file and stop")
+    a = ap.parse_args(argv)
+    if a.table:
+        table_from_jsonl(a.table)
+        return 0
+    if not SRIF.is_dir() or not PUCALLPA.is_dir():
+        print(f"no development data at {SRIF} / {PUCALLPA}", file=sys.stderr)
+        return 1
+    cv2.setNumThreads(1)
+    sets = a.sets.split(",")
+    scenes: list[bx.Scene] = []
+    queries: list[bx.Query] = []
+    mods = a.modalities.split(",")
+    if "srif_wide" in sets or "srif_pair" in sets:
+        s, q = build_srif(mods, "srif_wide" in sets, "srif_pair" in sets, a.per_half)
+        scenes += s
+        queries += q
+    if "pucallpa" in sets:
+        s, q = build_pucallpa(a.seed, True, a.puc_first, a.puc_crops)
+        scenes += s
+        queries += q
+    order = {"wide": 0, "pucallpa": 1, "pair": 2}  # a cut run keeps the targets first
+    queries.sort(key=lambda q: order[q.setting])  # type: ignore[attr-defined]
+    if a.half != "both":
+        queries = [q for q in queries if q.half == a.half]  # type: ignore[attr-defined]
+    if a.limit:
+        keep: dict[str, int] = {}
+        sel = []
+        for q in queries:
+            k = q.setting  # type: ignore[attr-defined]
+            if keep.get(k, 0) < a.limit:
+                keep[k] = keep.get(k, 0) + 1
+                sel.append(q)
+        queries = sel
+    by = {s.name: s for s in scenes}
+    methods = a.methods.split(",")
+    rows: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    partial = Path(a.out).with_suffix(".jsonl")  # one line per record as it is made
+    partial.write_text("")
+    done: dict[tuple[str, str], dict[str, Any]] = {}
+    if a.reuse:
+        for line in Path(a.reuse).read_text().splitlines():
+            r = json.loads(line)
+            # wide-area records are judged against every place of the query since the overlap
+            # check: never reused from a run before it
+            if r["method"] in a.reuse_methods.split(",") and "places" in r or (
+                r["method"] in a.reuse_methods.split(",") and not r["group"].startswith("wide")
+            ):
+                done[(r.pop("method"), r["query"])] = r
+    for qi, q in enumerate(queries):
+        setting = q.setting  # type: ignore[attr-defined]
+        group = setting if setting == "pucallpa" else f"{setting}_{q.name.split('_')[1]}"
+        for name in methods:
+            if (name, q.name) in done:
+                rows[name].append(done[(name, q.name)])
+                with partial.open("a") as f:
+                    f.write(json.dumps({"method": name, **done[(name, q.name)]}) + "\n")
+                continue
+            c0 = time.process_time()
+            res = run(q, by[q.map_scene], name, a.seed + qi)
+            cpu = time.process_time() - c0
+            j = judge(q, by[q.map_scene], res)
+            rec = {"query": q.name, "group": group, "half": q.half,  # type: ignore[attr-defined]
+                   "positive": q.truth is not None, **j, "inliers": res["inliers"],
+                   "matches": res["matches"], "log10_nfa": res.get("log10_nfa"),
+                   "seconds": res["seconds"], "cpu_seconds": cpu,
+                   "candidates": res.get("candidates"), "tests": res.get("tests"),
+                   "places": len(getattr(q, "alts", []) or []),
+                   "H": None if res.get("H") is None else np.asarray(res["H"]).tolist()}  # fmt: skip
+            rows[name].append(rec)
+            with partial.open("a") as f:
+                f.write(json.dumps({"method": name, **rec}, default=float) + "\n")
+            if a.v:
+                e = "-" if j["error_px"] is None else f"{j['error_px']:.2f}"
+                print(f"{rec['half'][:5]} {q.name:34s} {name:14s} {j['outcome']:12s} err {e:>8s} "
+                      f"inl {res['inliers']:3d}/{res['matches']:4d} {res['seconds']:.2f}s "
+                      f"cpu {cpu:.2f}s", flush=True)  # fmt: skip
+    print(f"\n{len(queries)} queries, seed {a.seed}; machine shared (2 cores, ~8 engineers)")
+    summary = table(rows, methods)
+    sources = {m: METHODS[m].get("source", "bench") for m in methods}
+    Path(a.out).write_text(json.dumps({"summary": summary, "sources": sources, "rows": rows},
+                                      indent=1, default=float))  # fmt: skip
+    return 0
+
+
+def table(rows: dict[str, list[dict[str, Any]]], methods: list[str]) -> dict[str, Any]:
+    """Print the markdown table (set x method x half) and return the summary."""
+    print("| set | method | half | registered | false accepts | unrelated accepted "
+          "| median err px | s/query | cpu s/query |")
+    print("|---|---|---|---:|---:|---:|---:|---:|---:|")
+    summary: dict[str, Any] = {}
+    groups = sorted({r["group"] for rr in rows.values() for r in rr})
+    for g in groups:
+        for name in methods:
+            for half in ("tuning", "checking"):
+                sm = summarise([x for x in rows[name] if x["group"] == g and x["half"] == half])
+                summary.setdefault(g, {}).setdefault(name, {})[half] = sm
+                if not sm["positives"] and not sm["negatives"]:
+                    continue
+                print(f"| {g} | {name} | {half} | {sm['success']}/{sm['positives']} "
+                      f"| {sm['false_accept']} | {sm['unrelated_accepted']}/{sm['negatives']} "
+                      f"| {sm['median_error_px']:.2f} | {sm['seconds_per_query']:.2f} "
+                      f"| {sm['cpu_seconds_per_query']:.2f} |")  # fmt: skip
+    return summary
+
+
+def table_from_jsonl(path: str) -> None:
+    """The table of a (possibly unfinished) run from its .jsonl records."""
+    rows: dict[str, list[dict[str, Any]]] = {}
+    for line in Path(path).read_text().splitlines():
+        r = json.loads(line)
+        rows.setdefault(r.pop("method"), []).append(r)
+    table(rows, list(rows))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
