@@ -31,6 +31,8 @@ rule trajectory:
         vset="|".join(re.escape(s) for s in VIDEO_SETS) or "(?!)",
     log:
         "logs/frames/{vset}.log",
+    benchmark:
+        "benchmarks/trajectory/trajectory/{vset}.tsv"
     threads: 2
     resources:
         mem_mb=4000,
