@@ -33,7 +33,7 @@ rule trajectory:
         "logs/frames/{vset}.log",
     benchmark:
         "benchmarks/trajectory/trajectory/{vset}.tsv"
-    threads: 2
+    threads: 1
     resources:
         mem_mb=4000,
     script:
