@@ -29,6 +29,8 @@ rule demo_scene:
         conf=config["demo"],
     log:
         "logs/demo/demo_scene.log",
+    benchmark:
+        "benchmarks/demo/demo_scene.tsv"
     threads: 1
     script:
         "../../scripts/demo_scene.py"

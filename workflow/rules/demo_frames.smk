@@ -17,6 +17,8 @@ rule demo_frames:
         demo_frames=DEMO_FRAME_VIEWS,
     log:
         "logs/demo/demo_frames.log",
+    benchmark:
+        "benchmarks/demo/demo_frames.tsv"
     threads: 1
     script:
         "../../scripts/demo_frames.py"
@@ -35,6 +37,8 @@ rule demo_video:
         demo_video=(config.get("trajectory") or {}).get("demo_video") or {},
     log:
         "logs/demo/demo_video.log",
+    benchmark:
+        "benchmarks/demo/demo_video.tsv"
     threads: 1
     script:
         "../../scripts/demo_video.py"

@@ -29,6 +29,8 @@ rule localize_frames:
         fset="|".join(re.escape(s) for s in IMAGE_SETS) or "(?!)",
     log:
         "logs/frames/{fset}.log",
+    benchmark:
+        "benchmarks/frames/localize_frames/{fset}.tsv"
     threads: 1
     resources:
         mem_mb=3000,

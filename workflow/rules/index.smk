@@ -26,6 +26,8 @@ rule tile_features:
         tile=r"r\d+_c\d+",
     log:
         "logs/index/tile_features/{tile}.log",
+    benchmark:
+        "benchmarks/index/tile_features/{tile}.tsv"
     threads: 1
     resources:
         mem_mb=2000,
@@ -44,6 +46,8 @@ rule vocabulary:
         seed=index_vocabulary_seed(),
     log:
         "logs/index/vocabulary.log",
+    benchmark:
+        "benchmarks/index/vocabulary.tsv"
     threads: workflow.cores
     resources:
         mem_mb=4000,
@@ -60,6 +64,8 @@ rule word_quantizer:
         ef_search=config["vocabulary"].get("ef_search", 64),
     log:
         "logs/index/word_quantizer.log",
+    benchmark:
+        "benchmarks/index/word_quantizer.tsv"
     threads: 1
     resources:
         mem_mb=2000,
@@ -78,6 +84,8 @@ rule tile_words:
         tile=r"r\d+_c\d+",
     log:
         "logs/index/tile_words/{tile}.log",
+    benchmark:
+        "benchmarks/index/tile_words/{tile}.tsv"
     threads: 1
     resources:
         mem_mb=1000,
@@ -98,6 +106,8 @@ rule build_index:
         quantizer=f"{INDEX_DIR}/quantizer.faiss",
     log:
         "logs/index/build_index.log",
+    benchmark:
+        "benchmarks/index/build_index.tsv"
     threads: 1
     resources:
         mem_mb=4000,

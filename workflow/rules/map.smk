@@ -18,6 +18,8 @@ checkpoint map_grid:
         crs=config["map"].get("crs"),
     log:
         "logs/map/map_grid.log",
+    benchmark:
+        "benchmarks/map/map_grid.tsv"
     threads: 1
     resources:
         mem_mb=1000,
@@ -37,6 +39,8 @@ rule map_tile_ortho:
         tile=r"r\d+_c\d+",
     log:
         "logs/map/map_tile_ortho/{tile}.log",
+    benchmark:
+        "benchmarks/map/map_tile_ortho/{tile}.tsv"
     threads: 1
     resources:
         mem_mb=1000,
@@ -62,6 +66,8 @@ rule map_tile_elevation:
         tile=r"r\d+_c\d+",
     log:
         "logs/map/map_tile_elevation/{tile}.log",
+    benchmark:
+        "benchmarks/map/map_tile_elevation/{tile}.tsv"
     threads: 1
     resources:
         mem_mb=3000,
@@ -79,6 +85,8 @@ rule map_mosaic:
         layer="|".join(MAP_MOSAIC_LAYERS),
     log:
         "logs/map/map_mosaic/{layer}.log",
+    benchmark:
+        "benchmarks/map/map_mosaic/{layer}.tsv"
     threads: 1
     script:
         "../../scripts/map_mosaic.py"
@@ -93,6 +101,8 @@ rule map_overview:
         report("results/map/overview.png", category="map"),
     log:
         "logs/map/map_overview.log",
+    benchmark:
+        "benchmarks/map/map_overview.tsv"
     threads: 1
     resources:
         mem_mb=1500,

@@ -25,6 +25,8 @@ rule products_cube:
         products={k: config["products"][k] for k in PROD_CUBE_KEYS},
     log:
         "logs/products/products_cube/{name}.log",
+    benchmark:
+        "benchmarks/products/products_cube/{name}.tsv"
     threads: 1
     resources:
         mem_mb=1500,
@@ -49,6 +51,8 @@ rule products:
         map_heights=map_elevation_source() != "none",
     log:
         "logs/products/products/{name}.log",
+    benchmark:
+        "benchmarks/products/products/{name}.tsv"
     threads: 1
     resources:
         mem_mb=2000,

@@ -20,6 +20,8 @@ rule query_band:
         percentiles=config["register"]["stretch_percentiles"],
     log:
         "logs/register/query_band/{name}.log",
+    benchmark:
+        "benchmarks/register/query_band/{name}.tsv"
     threads: 1
     resources:
         mem_mb=2000,
@@ -42,6 +44,8 @@ rule search_part:
         part=r"\d+",
     log:
         "logs/register/search_part/{name}_{part}.log",
+    benchmark:
+        "benchmarks/register/search_part/{name}_{part}.tsv"
     threads: 1
     resources:
         mem_mb=3000,
@@ -67,6 +71,8 @@ rule fuse_parts:
         seed=REG_SEED,
     log:
         "logs/register/fuse_parts/{name}.log",
+    benchmark:
+        "benchmarks/register/fuse_parts/{name}.tsv"
     threads: 1
     resources:
         mem_mb=3000,
@@ -93,6 +99,8 @@ rule refine_registration:
         refine=config["refine"],
     log:
         "logs/register/refine_registration/{name}.log",
+    benchmark:
+        "benchmarks/register/refine_registration/{name}.tsv"
     threads: 1
     resources:
         mem_mb=3000,

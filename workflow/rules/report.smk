@@ -24,6 +24,8 @@ rule evaluate_query:
         bound={k: REP[k] for k in ("success_error_px", "success_stat", "min_inside_fraction")},
     log:
         "logs/report/evaluate_query/{name}.log",
+    benchmark:
+        "benchmarks/report/evaluate_query/{name}.tsv"
     threads: 1
     resources:
         mem_mb=1500,
@@ -59,6 +61,8 @@ rule report_figures:
         },
     log:
         "logs/report/report_figures/{name}.log",
+    benchmark:
+        "benchmarks/report/report_figures/{name}.tsv"
     threads: 1
     resources:
         mem_mb=2000,
@@ -129,6 +133,8 @@ rule report_html:
         logs=["logs", "benchmarks"],
     log:
         "logs/report/report_html.log",
+    benchmark:
+        "benchmarks/report/report_html.tsv"
     threads: 1
     resources:
         mem_mb=1500,

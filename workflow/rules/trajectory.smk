@@ -31,7 +31,9 @@ rule trajectory:
         vset="|".join(re.escape(s) for s in VIDEO_SETS) or "(?!)",
     log:
         "logs/frames/{vset}.log",
-    threads: 2
+    benchmark:
+        "benchmarks/trajectory/trajectory/{vset}.tsv"
+    threads: 1
     resources:
         mem_mb=4000,
     script:
