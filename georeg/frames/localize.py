@@ -168,6 +168,7 @@ class MapSources:
             log.warning("the map has no elevation: frames are localised on a flat ground at z = %g; "
                         "%s", self.flat_z, FLAT_GROUND_WARNING)  # fmt: skip
         self.window_cache: dict = {}  # the whole (small) map's dense features, for every frame
+        self.feature_map = None  # earlier sets' feature maps (georeg.frames.feature_map), tried first
 
     def ground_z(self, C: np.ndarray, radius: float = 150.0) -> float:
         """Median elevation of the map features within ``radius`` of C (x, y), the radius grown
@@ -297,6 +298,33 @@ def _refine_exif_focal(scored: list, window_of, rec: dict, max_sigma: float = 0.
         scored.sort(key=lambda t: -t[3]["score"])
 
 
+def feature_map_hypothesis(gray: np.ndarray, K: np.ndarray, w: int, h: int, maps: MapSources,
+                           vconf: dict, feat_conf: dict, min_inl: int, rec: dict,
+                           windows: list) -> tuple | None:  # fmt: skip
+    """The pose of the frame against the feature maps (``maps.feature_map``), kept as a hypothesis
+    only when it verifies against the orthophoto / DSM (the same score as every path, polished
+    on the same window); else a recorded fallback (``feature_map`` in the record) and None."""
+    t = time.perf_counter()
+    r = maps.feature_map.locate(gray, K)
+    rec["feature_map"] = {"sources": [Path(s).name for s in maps.feature_map.sources], **r.info}
+    if not r.ok:
+        rec["feature_map"].update(used=False, fallback=f"map-only path: {r.info.get('reason')}")
+        return None
+    cam = PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, r.pnp.R, r.pnp.C)
+    zg = maps.ground_z(cam.C)
+    mt = match_window(gray, cam, maps.ortho, maps.dsm, feat_conf, maps.gsd, zg, vconf, maps.flat_z)
+    tol = verification_tolerance(cam, maps.gsd, zg, float(vconf["verify_px"]))
+    v = verify(mt, polish(mt, cam, tol, int(vconf["polish_rounds"]), bool(vconf["polish_distinct"])), tol)
+    rec["feature_map"].update(score=v["score"], seconds=round(time.perf_counter() - t, 3))
+    if v["score"] < min_inl:
+        rec["feature_map"].update(used=False, fallback=f"map-only path: the feature-map pose verifies "
+                                                       f"{v['score']} < {min_inl} against the map")  # fmt: skip
+        return None
+    windows.append(mt)
+    rec["feature_map"]["used"] = True
+    return ("feature map 2D-3D", cam, r.pnp)
+
+
 def _cam_record(cam: PinholeCamera) -> dict:
     return {"camera_center_xyz": [float(v) for v in cam.C], "R_world_to_cam": np.asarray(cam.R).tolist()}
 
@@ -381,11 +409,16 @@ def localize_image(
         K, dist = camera_matrix(camera, w, h)
         und = cv2.undistort(rgb, K, dist) if np.any(dist) else rgb
         gray = cv2.cvtColor(und, cv2.COLOR_RGB2GRAY)
-        if map_px <= int(vconf["whole_map_first_px"]):
+        if maps.feature_map is not None:  # earlier sets' feature maps first
+            t = time.perf_counter()
+            fm = feature_map_hypothesis(gray, K, w, h, maps, vconf, feat_conf, min_inl, rec, windows)
+            hyps += [fm] if fm else []
+            timings["feature_map_s"] = time.perf_counter() - t
+        if not hyps and map_px <= int(vconf["whole_map_first_px"]):
             whole_map()  # a small map: cheaper than the coarse search
         t0c = time.perf_counter()
         co = (coarse_locate(gray, K, maps.coarse_index, c["coarse"], maps.dense) if not hyps else
-              Coarse(False, reason="not run: the whole-map direct matching gave a pose"))  # fmt: skip
+              Coarse(False, reason=f"not run: the {'feature map' if rec.get('feature_map', {}).get('used') else 'whole-map direct matching'} gave a pose"))  # fmt: skip
         timings["coarse_s"] = time.perf_counter() - t0c
         focal_note = camera.get("source", "given")  # "exif": from frame_exif
     else:
@@ -610,10 +643,11 @@ def evaluate(rec: dict, truth: dict) -> dict:
 
 
 def localize_set(images: Any, camera: dict | None, index_dir, ortho_vrt, dsm_vrt, laz_paths,
-                 conf: dict, out_dir, truth_path: str | None = None,
-                 ground_z: float = 0.0) -> list[dict]:  # fmt: skip
+                 conf: dict, out_dir, truth_path: str | None = None, ground_z: float = 0.0,
+                 feature_maps: list | None = None) -> list[dict]:  # fmt: skip
     """Rule ``localize_frames``: every frame of a set -> results/frames/{set}/. ``dsm_vrt`` None:
-    the ground is the plane z = ``ground_z`` (recorded as ``ground`` in every pose)."""
+    the ground is the plane z = ``ground_z`` (recorded as ``ground`` in every pose).
+    ``feature_maps``: earlier sets' sfm_points.laz, tried first (``georeg.frames.feature_map``)."""
     out = Path(out_dir)
     paths = frame_images(images)
     if not paths:
@@ -628,6 +662,10 @@ def localize_set(images: Any, camera: dict | None, index_dir, ortho_vrt, dsm_vrt
         dense_coarse=bool(conf.get("dense_coarse", DEFAULTS["dense_coarse"])),
         ground_z=ground_z,
     )
+    if feature_maps:
+        from georeg.frames.feature_map import load_feature_maps
+
+        maps.feature_map = load_feature_maps(feature_maps, maps.crs_wkt, maps.bounds(), conf.get("feature_map"))
     truth = {}
     if truth_path:
         import json
@@ -643,5 +681,12 @@ def localize_set(images: Any, camera: dict | None, index_dir, ortho_vrt, dsm_vrt
         poses.append(rec)
     write_geojson(out / "cameras.geojson", poses, maps.crs_wkt)
     write_kml(out / "cameras.kml", poses, maps.crs_wkt)
+    if maps.feature_map is not None:
+        served = sum(1 for p in poses if (p.get("feature_map") or {}).get("used")
+                     and str(p.get("path", "")).startswith("feature map"))  # fmt: skip
+        log.info("feature maps served %d of %d frames", served, len(poses))
+        if not served:
+            log.warning("the feature maps %s served none of the frames: every frame took the "
+                        "map-only path (recorded per frame as feature_map.fallback)", feature_maps)  # fmt: skip
     write_poses(out / "poses.json", poses)
     return poses
