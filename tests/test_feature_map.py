@@ -58,3 +58,40 @@ def test_feature_map_off_the_map(tmp_path):
 def test_missing_feature_map(tmp_path):
     with pytest.raises(InputError, match="nothere.laz: the feature map does not exist"):
         load_feature_maps([tmp_path / "nothere.laz"], CRS, BOUNDS)
+
+
+def test_surface_points_meet_the_dsm():
+    from rasterio.transform import from_origin
+
+    from georeg.frames.feature_map_grow import surface_points
+
+    z = np.full((200, 200), 10.0)
+    z[:, 100:] = 30.0  # a step: the east half 20 m higher
+    tr = from_origin(0.0, 200.0, 1.0, 1.0)
+    C = np.array([100.0, 100.0, 150.0])
+    rng = np.random.default_rng(0)
+    d = np.c_[rng.uniform(-0.5, 0.5, 400), rng.uniform(-0.5, 0.5, 400), -np.ones(400)]
+    X, ok = surface_points(C, d, (z, ~tr), 0.0)
+    expect = np.where(X[:, 0] >= 100, 30.0, 10.0)
+    assert ok.mean() > 0.9
+    assert np.allclose(X[ok, 2], expect[ok], atol=1e-6)
+    # on its ray: X = C + s d
+    s = (X[:, 2] - C[2]) / d[:, 2]
+    assert np.allclose(X, C + s[:, None] * d)
+    Xf, okf = surface_points(C, d, None, 5.0)
+    assert okf.all() and np.allclose(Xf[:, 2], 5.0)
+
+
+def test_grown_map_adds_own_points_and_never_overwrites(tmp_path):
+    from georeg.frames.feature_map_grow import grow_feature_map
+
+    a, xa = _map(tmp_path, "used.laz")
+    b, xb = _map(tmp_path, "own.laz", n=30, x0=500_500.0)
+    out = tmp_path / "grown.laz"
+    info = grow_feature_map(out, CRS, [a], own=[b])
+    assert info == {"used_points": 200, "own_sfm_points": 30, "points": 230}
+    fm = load_feature_maps([out], CRS, BOUNDS)
+    assert np.allclose(fm.xyz, np.r_[xa, xb], atol=1e-3)
+    assert np.array_equal(fm.desc[:200], load_feature_maps([a], CRS).desc)
+    with pytest.raises(InputError, match="overwrite one of its inputs"):
+        grow_feature_map(a, CRS, [a])

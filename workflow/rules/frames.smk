@@ -57,3 +57,37 @@ rule localize_frames:
 
 
 TARGETS.append(expand("results/frames/{fset}/poses.json", fset=IMAGE_SETS))
+
+
+# Maps that grow (issue 33): a set with write_feature_map writes feature_map.laz, the feature
+# maps it used plus its own geo-registered points (a new file; inputs are never overwritten).
+GROW_SETS = [s for s in FRAME_SETS if config["frames"][s].get("write_feature_map")]
+
+
+rule grow_feature_map:
+    input:
+        poses="results/frames/{gset}/poses.json",
+        images=lambda wc: [] if wc.gset in VIDEO_SETS else frame_images(config["frames"][wc.gset].get("images")),
+        own=lambda wc: [f"results/frames/{wc.gset}/sfm_points.laz"] if wc.gset in VIDEO_SETS else [],
+        used=lambda wc: frame_set_feature_maps(wc.gset),
+        ortho="results/map/mosaic/ortho.vrt",
+        dsm=frame_dsm,
+    output:
+        laz="results/frames/{gset}/feature_map.laz",
+        descriptors="results/frames/{gset}/feature_map_descriptors.npy",
+    params:
+        conf=(config.get("frame_loc") or {}).get("feature_map") or {},
+        ground_z=config["map"].get("ground_z", 0.0),
+        video=lambda wc: wc.gset in VIDEO_SETS,
+    wildcard_constraints:
+        gset="|".join(re.escape(s) for s in GROW_SETS) or "(?!)",
+    log:
+        "logs/frames/grow_{gset}.log",
+    threads: 1
+    resources:
+        mem_mb=2000,
+    script:
+        "../../scripts/frames_grow_feature_map.py"
+
+
+TARGETS.append(expand("results/frames/{gset}/feature_map.laz", gset=GROW_SETS))
