@@ -8,9 +8,10 @@ feature map; every other photo is localised alone, map-only and with the feature
 
     nice python benchmarks/bench_feature_maps.py brighton [--split 9] [--work /tmp/bench_fm]
 
-Demo (a finished default run in <results dir>): the demo frames and every ``--every``-th frame of
-the second half of the demo video (as single frames), against the feature map of a trajectory
-built from the first half only, and map-only; errors against the demo truth:
+Demo (a finished default run in <results dir>): every ``--every``-th frame of the second half of
+the demo video, alone, against the feature map of a trajectory built from the first half only,
+and the demo frames against the whole video's feature map (the workflow's), each also map-only;
+errors against the demo truth:
 
     nice python benchmarks/bench_feature_maps.py demo results [--every 20] [--work /tmp/bench_fm_demo]
 
@@ -229,9 +230,12 @@ def demo(a) -> dict:
         e = evaluate(r, t)["final"]
         return {"horizontal_m": e["horizontal_m"], "vertical_m": e["vertical_m"]}
 
+    full = res / "frames" / "demo_video" / "sfm_points.laz"  # the workflow's whole-video feature map
+    fmap_full = load_feature_maps([full], ms.crs_wkt, ms.bounds(), fl.get("feature_map")) if full.exists() else fmap
     dbase = locate_all(dframes, dcam, ms, fl)
-    dfm = locate_all(dframes, dcam, ms, fl, fmap)
-    print("## Demo frames\n")
+    dfm = locate_all(dframes, dcam, ms, fl, fmap_full)
+    print(f"## Demo frames (against {'the whole video' if full.exists() else 'the first half'}'s feature map, "
+          f"{len(fmap_full)} points)\n")
     table([("map only", dbase), ("feature map", dfm)], derr)
     out["frames"] = {"map_only": summary(dbase, derr), "feature_map": summary(dfm, derr)}
     return out
