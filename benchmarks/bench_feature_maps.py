@@ -232,7 +232,11 @@ def demo(a) -> dict:
 
     full = res / "frames" / "demo_video" / "sfm_points.laz"  # the workflow's whole-video feature map
     fmap_full = load_feature_maps([full], ms.crs_wkt, ms.bounds(), fl.get("feature_map")) if full.exists() else fmap
-    dbase = locate_all(dframes, dcam, ms, fl)
+    # map-only: the workflow's own records of these frames (same code and configuration; wall
+    # seconds of that run: 3-4 min a frame with the intensity search, not rerun here)
+    wf = {Path(p["image"]).name: p for p in json.loads((res / "frames" / "demo" / "poses.json").read_text())}
+    dbase = [{**wf[f.name], "bench": {"wall_s": wf[f.name]["timings_s"]["total_s"], "cpu_s": float("nan")}}
+             for f in dframes]  # fmt: skip
     dfm = locate_all(dframes, dcam, ms, fl, fmap_full)
     print(f"## Demo frames (against {'the whole video' if full.exists() else 'the first half'}'s feature map, "
           f"{len(fmap_full)} points)\n")

@@ -299,11 +299,13 @@ def _refine_exif_focal(scored: list, window_of, rec: dict, max_sigma: float = 0.
 
 
 def feature_map_hypothesis(gray: np.ndarray, K: np.ndarray, w: int, h: int, maps: MapSources,
-                           vconf: dict, feat_conf: dict, min_inl: int, rec: dict,
-                           windows: list) -> tuple | None:  # fmt: skip
+                           vconf: dict, feat_conf: dict, min_inl: int, rec: dict, windows: list,
+                           ad: dict) -> tuple | None:  # fmt: skip
     """The pose of the frame against the feature maps (``maps.feature_map``), kept as a hypothesis
     only when it verifies against the orthophoto / DSM (the same score as every path, polished
-    on the same window); else a recorded fallback (``feature_map`` in the record) and None."""
+    on the same window); else a recorded fallback (``feature_map`` in the record) and None.
+    ``feature_map.strong``: it verified strong by the adaptive bounds ``ad`` (then it replaces the
+    map-only search; a weak one only joins the map-only hypotheses)."""
     t = time.perf_counter()
     r = maps.feature_map.locate(gray, K)
     rec["feature_map"] = {"sources": [Path(s).name for s in maps.feature_map.sources], **r.info}
@@ -315,7 +317,9 @@ def feature_map_hypothesis(gray: np.ndarray, K: np.ndarray, w: int, h: int, maps
     mt = match_window(gray, cam, maps.ortho, maps.dsm, feat_conf, maps.gsd, zg, vconf, maps.flat_z)
     tol = verification_tolerance(cam, maps.gsd, zg, float(vconf["verify_px"]))
     v = verify(mt, polish(mt, cam, tol, int(vconf["polish_rounds"]), bool(vconf["polish_distinct"])), tol)
-    rec["feature_map"].update(score=v["score"], seconds=round(time.perf_counter() - t, 3))
+    strong = bool(ad["enabled"] and v["score"] >= int(ad["strong_score"])
+                  and (v["rms_px"] or np.inf) <= float(ad["strong_rms_frac"]) * float(v["tolerance_px"]))  # fmt: skip
+    rec["feature_map"].update(score=v["score"], strong=strong, seconds=round(time.perf_counter() - t, 3))
     if v["score"] < min_inl:
         rec["feature_map"].update(used=False, fallback=f"map-only path: the feature-map pose verifies "
                                                        f"{v['score']} < {min_inl} against the map")  # fmt: skip
@@ -389,6 +393,7 @@ def localize_image(
     windows: list[Matches] = []
     vconf = {**DIRECT_DEFAULTS, **(c.get("direct") or {})}
     map_px = maps.whole_map_px()
+    fm_weak = None  # a feature-map pose that verified, but not strong
 
     def whole_map() -> None:
         """Direct matching on the whole (small) map, the frame at full size (at most 3 Mpx)."""
@@ -411,8 +416,10 @@ def localize_image(
         gray = cv2.cvtColor(und, cv2.COLOR_RGB2GRAY)
         if maps.feature_map is not None:  # earlier sets' feature maps first
             t = time.perf_counter()
-            fm = feature_map_hypothesis(gray, K, w, h, maps, vconf, feat_conf, min_inl, rec, windows)
-            hyps += [fm] if fm else []
+            fm = feature_map_hypothesis(gray, K, w, h, maps, vconf, feat_conf, min_inl, rec, windows,
+                                        {**DEFAULTS["adaptive"], **(c.get("adaptive") or {})})  # fmt: skip
+            hyps += [fm] if fm and rec["feature_map"]["strong"] else []  # strong: no map-only search
+            fm_weak = fm if fm and not hyps else None  # weak: one more hypothesis after it
             timings["feature_map_s"] = time.perf_counter() - t
         if not hyps and map_px <= int(vconf["whole_map_first_px"]):
             whole_map()  # a small map: cheaper than the coarse search
@@ -477,6 +484,8 @@ def localize_image(
     tried_whole = any(a["start"] == "whole map" for a in rec.get("direct_attempts", []))
     if not hyps and not tried_whole and map_px <= int(vconf["whole_map_px"]):
         whole_map()
+    if fm_weak:  # a weakly verified feature-map pose competes with the map-only ones
+        hyps.append(fm_weak)
 
     # every hypothesis is polished by LM on its guided matches over the whole frame, then scored
     # (guided inliers, the same map window); the intensity refinement of the best must beat it
