@@ -93,7 +93,10 @@ def table(rows: list[tuple[str, list[dict]]], err) -> None:
             r = recs[i]
             e = err(r)
             es = f"{e['horizontal_m']:.2f} m h / {e.get('vertical_m', float('nan')):+.2f} m v" if e else "-"
-            cells.append(f"{r['status']}, {r.get('path', '-')}, {es}, {r['bench']['cpu_s']:.1f}")
+            fm = r.get("feature_map") or {}
+            fs = (f" [fm {fm.get('inliers')} inl, score {fm.get('score')}{', start' if fm.get('start') else ''}]"
+                  if fm else "")  # fmt: skip
+            cells.append(f"{r['status']}, {r.get('path', '-')}{fs}, {es}, {r['bench']['cpu_s']:.1f}")
         print(f"| {Path(rows[0][1][i]['image']).name} | " + " | ".join(cells) + " |")
     print()
     print("| variant | registered | by feature map | median / max horizontal error (m) | median CPU s | median wall s |")
@@ -133,14 +136,21 @@ def brighton(a) -> dict:
     photos = sorted((BRIGHTON / "frames").glob("DJI_*.JPG"))
     seq, single = photos[: a.split], photos[a.split :]
     t0 = time.perf_counter()
-    maps = build_case_map(BRIGHTON / "map_ortho.tif", BRIGHTON / "elevation.tif", work / "map")
+    if a.reuse and (work / "map" / "index").is_dir():  # the map of an earlier run of this command
+        m = work / "map"
+        maps = {"index": m / "index", "ortho": m / "mosaic" / "ortho.vrt", "dsm": m / "mosaic" / "dsm.vrt"}
+    else:
+        maps = build_case_map(BRIGHTON / "map_ortho.tif", BRIGHTON / "elevation.tif", work / "map")
     print(f"map built ({time.perf_counter() - t0:.0f} s)", file=sys.stderr)
     ms = MapSources(maps["index"], maps["ortho"], maps["dsm"])
     # 1. the sequence builds the feature map
     t0, c0 = time.perf_counter(), cpu()
     seq_dir = work / "sequence"
-    seq_poses = georeference_video({"images": [str(p) for p in seq], "trajectory": True, "camera": None,
-                                    "fps": 1.0}, ms, fl, tr, seq_dir)  # fmt: skip
+    if a.reuse and (seq_dir / "sfm_points.laz").exists():  # its sequence too (seconds: that run's)
+        seq_poses = json.loads((seq_dir / "poses.json").read_text())
+    else:
+        seq_poses = georeference_video({"images": [str(p) for p in seq], "trajectory": True, "camera": None,
+                                        "fps": 1.0}, ms, fl, tr, seq_dir)  # fmt: skip
     seq_s = {"wall_s": time.perf_counter() - t0, "cpu_s": cpu() - c0}
     for r in seq_poses:
         r["bench"] = {"wall_s": seq_s["wall_s"] / len(seq_poses), "cpu_s": seq_s["cpu_s"] / len(seq_poses)}
@@ -193,7 +203,8 @@ def demo(a) -> dict:
     n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
     half = n // 2
     t0, c0 = time.perf_counter(), cpu()
-    georeference_video({"video": str(video), "camera": vcam}, ms, fl, {**tr, "max_frames": half}, work / "first_half")
+    if not (a.reuse and (work / "first_half" / "sfm_points.laz").exists()):
+        georeference_video({"video": str(video), "camera": vcam}, ms, fl, {**tr, "max_frames": half}, work / "first_half")
     print(f"first half ({half} frames) geo-referenced: {cpu() - c0:.0f} CPU s, {time.perf_counter() - t0:.0f} s wall",
           file=sys.stderr)  # fmt: skip
     from georeg.io.video import video_name
@@ -259,6 +270,7 @@ def main(argv: list[str]) -> None:
     d.add_argument("--work", default="/tmp/bench_fm_demo")
     for p in (b, d):
         p.add_argument("--out", default=None, help="summary JSON")
+        p.add_argument("--reuse", action="store_true", help="reuse the map / first sequence of an earlier run in --work")
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     out = brighton(a) if a.cmd == "brighton" else demo(a)

@@ -303,7 +303,9 @@ def feature_map_hypothesis(gray: np.ndarray, K: np.ndarray, w: int, h: int, maps
                            ad: dict) -> tuple | None:  # fmt: skip
     """The pose of the frame against the feature maps (``maps.feature_map``), kept as a hypothesis
     only when it verifies against the orthophoto / DSM (the same score as every path, polished
-    on the same window); else a recorded fallback (``feature_map`` in the record) and None.
+    on the same window); else a recorded fallback (``feature_map`` in the record) and None; a
+    covered frame whose pose does not verify gets ``feature_map.start`` (the caller's direct
+    matching starts from ``feature_map.pose`` instead of the coarse search).
     ``feature_map.strong``: it verified strong by the adaptive bounds ``ad`` (then it replaces the
     map-only search; a weak one only joins the map-only hypotheses)."""
     t = time.perf_counter()
@@ -313,6 +315,7 @@ def feature_map_hypothesis(gray: np.ndarray, K: np.ndarray, w: int, h: int, maps
         rec["feature_map"].update(used=False, fallback=f"map-only path: {r.info.get('reason')}")
         return None
     cam = PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, r.pnp.R, r.pnp.C)
+    rec["feature_map"]["pose"] = _cam_record(cam)
     zg = maps.ground_z(cam.C)
     mt = match_window(gray, cam, maps.ortho, maps.dsm, feat_conf, maps.gsd, zg, vconf, maps.flat_z)
     tol = verification_tolerance(cam, maps.gsd, zg, float(vconf["verify_px"]))
@@ -320,9 +323,9 @@ def feature_map_hypothesis(gray: np.ndarray, K: np.ndarray, w: int, h: int, maps
     strong = bool(ad["enabled"] and v["score"] >= int(ad["strong_score"])
                   and (v["rms_px"] or np.inf) <= float(ad["strong_rms_frac"]) * float(v["tolerance_px"]))  # fmt: skip
     rec["feature_map"].update(score=v["score"], strong=strong, seconds=round(time.perf_counter() - t, 3))
-    if v["score"] < min_inl:
-        rec["feature_map"].update(used=False, fallback=f"map-only path: the feature-map pose verifies "
-                                                       f"{v['score']} < {min_inl} against the map")  # fmt: skip
+    if v["score"] < min_inl:  # covered, but off the map by more than the tolerance: a start only
+        rec["feature_map"].update(used=False, start=True, fallback=f"map-only path from the feature-map "
+                                  f"pose as its start (it verifies {v['score']} < {min_inl} against the map)")  # fmt: skip
         return None
     windows.append(mt)
     rec["feature_map"]["used"] = True
@@ -394,6 +397,7 @@ def localize_image(
     vconf = {**DIRECT_DEFAULTS, **(c.get("direct") or {})}
     map_px = maps.whole_map_px()
     fm_weak = None  # a feature-map pose that verified, but not strong
+    fm_start = False  # a feature-map pose that did not verify: the direct matching's start
 
     def whole_map() -> None:
         """Direct matching on the whole (small) map, the frame at full size (at most 3 Mpx)."""
@@ -420,12 +424,13 @@ def localize_image(
                                         {**DEFAULTS["adaptive"], **(c.get("adaptive") or {})})  # fmt: skip
             hyps += [fm] if fm and rec["feature_map"]["strong"] else []  # strong: no map-only search
             fm_weak = fm if fm and not hyps else None  # weak: one more hypothesis after it
+            fm_start = bool(rec["feature_map"].get("start"))  # covered, not verified: a start
             timings["feature_map_s"] = time.perf_counter() - t
         if not hyps and map_px <= int(vconf["whole_map_first_px"]):
             whole_map()  # a small map: cheaper than the coarse search
         t0c = time.perf_counter()
-        co = (coarse_locate(gray, K, maps.coarse_index, c["coarse"], maps.dense) if not hyps else
-              Coarse(False, reason=f"not run: the {'feature map' if rec.get('feature_map', {}).get('used') else 'whole-map direct matching'} gave a pose"))  # fmt: skip
+        co = (coarse_locate(gray, K, maps.coarse_index, c["coarse"], maps.dense) if not hyps and not fm_start else
+              Coarse(False, reason=f"not run: the {'feature map' if rec.get('feature_map') else 'whole-map direct matching'} gave a {'pose' if hyps else 'start'}"))  # fmt: skip
         timings["coarse_s"] = time.perf_counter() - t0c
         focal_note = camera.get("source", "given")  # "exif": from frame_exif
     else:
@@ -464,6 +469,9 @@ def localize_image(
     rec["coarse"] = {"ok": co.ok, "inliers": co.inliers, "reason": co.reason,
                      "candidates": co.candidates}  # fmt: skip
     starts = [(co.R, co.C, "coarse PnP")] if co.ok else []
+    if fm_start:  # the feature-map pose: the first start of the direct matching
+        fp = rec["feature_map"]["pose"]
+        starts.insert(0, (np.asarray(fp["R_world_to_cam"]), np.asarray(fp["camera_center_xyz"]), "feature map"))
     starts += [
         (R, C, f"nadir vote ({v} votes)") for R, C, v in co.hypotheses[: int(c["vote_starts"])]
     ]
