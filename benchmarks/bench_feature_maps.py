@@ -229,6 +229,8 @@ def demo(a) -> dict:
     print(f"## Demo video, frames {half}..{n - 1} every {a.every} alone ({len(fmap)} feature-map points)\n")
     table([("map only", base), ("feature map", withfm)], err)
     out = {"video": {"map_only": summary(base, err), "feature_map": summary(withfm, err)}}
+    if a.skip_frames:
+        return out
     # the demo frames (other places and heights)
     dcam = cfg["frames"]["demo"]["camera"]
     dtruth = {Path(t["image"]).name: t for t in json.loads((res / "demo" / "frames" / "truth.json").read_text())}
@@ -267,6 +269,7 @@ def main(argv: list[str]) -> None:
     d = sub.add_parser("demo")
     d.add_argument("results")
     d.add_argument("--every", type=int, default=20)
+    d.add_argument("--skip-frames", action="store_true", help="only the video frames")
     d.add_argument("--work", default="/tmp/bench_fm_demo")
     for p in (b, d):
         p.add_argument("--out", default=None, help="summary JSON")
