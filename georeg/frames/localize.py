@@ -327,7 +327,8 @@ def feature_map_hypothesis(gray: np.ndarray, K: np.ndarray, w: int, h: int, maps
         rec["feature_map"].update(used=False, start=True, fallback=f"map-only path from the feature-map "
                                   f"pose as its start (it verifies {v['score']} < {min_inl} against the map)")  # fmt: skip
         return None
-    windows.append(mt)
+    if strong:  # a weak one must not change the window the map-only poses are scored on
+        windows.append(mt)
     rec["feature_map"]["used"] = True
     return ("feature map 2D-3D", cam, r.pnp)
 
