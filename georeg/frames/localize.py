@@ -431,7 +431,9 @@ def localize_image(
             whole_map()  # a small map: cheaper than the coarse search
         t0c = time.perf_counter()
         co = (coarse_locate(gray, K, maps.coarse_index, c["coarse"], maps.dense) if not hyps and not fm_start else
-              Coarse(False, reason=f"not run: the {'feature map' if rec.get('feature_map') else 'whole-map direct matching'} gave a {'pose' if hyps else 'start'}"))  # fmt: skip
+              Coarse(False, reason="not run: the " + ("feature map gave a pose" if rec.get("feature_map", {}).get("strong")
+                                                      else "whole-map direct matching gave a pose" if hyps
+                                                      else "feature map gave a start")))  # fmt: skip
         timings["coarse_s"] = time.perf_counter() - t0c
         focal_note = camera.get("source", "given")  # "exif": from frame_exif
     else:
