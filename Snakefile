@@ -29,6 +29,7 @@ include: "workflow/rules/report.smk"
 include: "workflow/rules/demo_frames.smk"
 include: "workflow/rules/frames.smk"
 include: "workflow/rules/trajectory.smk"
+include: "workflow/rules/export.smk"
 
 
 rule all:

@@ -19,6 +19,7 @@ def main(smk):
         Path(smk.output.poses).parent,
         smk.input.truth[0] if smk.input.truth else None,
         ground_z=float(smk.params.ground_z),
+        feature_maps=list(smk.input.feature_maps),
     )
 
 

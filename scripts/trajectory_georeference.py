@@ -13,6 +13,11 @@ def main(smk):
                       smk.input.dsm[0] if smk.input.dsm else None, list(smk.input.laz),
                       dense_coarse=bool(fl.get("dense_coarse", True)),
                       ground_z=float(smk.params.ground_z))  # fmt: skip
+    if smk.input.feature_maps:  # earlier sets' feature maps: the anchors try them first
+        from georeg.frames.feature_map import load_feature_maps
+
+        maps.feature_map = load_feature_maps(list(smk.input.feature_maps), maps.crs_wkt, maps.bounds(),
+                                             fl.get("feature_map"))  # fmt: skip
     georeference_video(
         dict(smk.params.frames),
         maps,

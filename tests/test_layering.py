@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 PKG = Path(__file__).resolve().parents[1] / "georeg"
-ORDER = ["io", "map", "index", "register", "frames", "products", "trajectory", "report", "demo"]
+ORDER = ["io", "map", "index", "register", "frames", "products", "trajectory", "export", "report", "demo"]
 
 
 def _imports(path: Path) -> list[tuple[int, str]]:

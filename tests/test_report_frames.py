@@ -240,3 +240,21 @@ def test_flat_ground_is_said_above_the_table(tmp_path: Path) -> None:
     assert 'data-key="flat_ground" data-value="2"' in text and "2 of 3 entries" in text
     (tmp_path / "poses.json").write_text(json.dumps(poses[2:]))
     assert "flat_ground" not in set_section("drone", tmp_path / "poses.json")
+
+
+def test_feature_map_service_is_said_above_the_table(tmp_path: Path) -> None:
+    """Frames tried against a feature map: the section says which it served and how many fell back."""
+    from georeg.report.frames_html import set_section
+
+    fm = {"sources": ["sfm_points.laz"], "map_points": 1234}
+    poses = [_entry("a", "registered", "registered", PNP_A, ERR_A, path="feature map 2D-3D",
+                    feature_map={**fm, "used": True}),
+             _entry("b", "registered", "registered", PNP_A, ERR_A, path="direct 2D-3D",
+                    feature_map={**fm, "used": False, "fallback": "map-only path: 3 PnP inliers"}),
+             _entry("c", "not_found", "not_found")]  # fmt: skip
+    (tmp_path / "poses.json").write_text(json.dumps(poses))
+    text = set_section("later", tmp_path / "poses.json")
+    assert 'data-key="feature_map_served" data-value="1"' in text
+    assert "served 1 of 2 frames tried (a.png)" in text and "1234 points" in text
+    (tmp_path / "poses.json").write_text(json.dumps(poses[2:]))
+    assert "feature_map_served" not in set_section("later", tmp_path / "poses.json")

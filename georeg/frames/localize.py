@@ -168,6 +168,7 @@ class MapSources:
             log.warning("the map has no elevation: frames are localised on a flat ground at z = %g; "
                         "%s", self.flat_z, FLAT_GROUND_WARNING)  # fmt: skip
         self.window_cache: dict = {}  # the whole (small) map's dense features, for every frame
+        self.feature_map = None  # earlier sets' feature maps (georeg.frames.feature_map), tried first
 
     def ground_z(self, C: np.ndarray, radius: float = 150.0) -> float:
         """Median elevation of the map features within ``radius`` of C (x, y), the radius grown
@@ -297,6 +298,41 @@ def _refine_exif_focal(scored: list, window_of, rec: dict, max_sigma: float = 0.
         scored.sort(key=lambda t: -t[3]["score"])
 
 
+def feature_map_hypothesis(gray: np.ndarray, K: np.ndarray, w: int, h: int, maps: MapSources,
+                           vconf: dict, feat_conf: dict, min_inl: int, rec: dict, windows: list,
+                           ad: dict) -> tuple | None:  # fmt: skip
+    """The pose of the frame against the feature maps (``maps.feature_map``), kept as a hypothesis
+    only when it verifies against the orthophoto / DSM (the same score as every path, polished
+    on the same window); else a recorded fallback (``feature_map`` in the record) and None; a
+    covered frame whose pose does not verify gets ``feature_map.start`` (the caller's direct
+    matching starts from ``feature_map.pose`` instead of the coarse search).
+    ``feature_map.strong``: it verified strong by the adaptive bounds ``ad`` (then it replaces the
+    map-only search; a weak one only joins the map-only hypotheses)."""
+    t = time.perf_counter()
+    r = maps.feature_map.locate(gray, K)
+    rec["feature_map"] = {"sources": [Path(s).name for s in maps.feature_map.sources], **r.info}
+    if not r.ok:
+        rec["feature_map"].update(used=False, fallback=f"map-only path: {r.info.get('reason')}")
+        return None
+    cam = PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], w, h, r.pnp.R, r.pnp.C)
+    rec["feature_map"]["pose"] = _cam_record(cam)
+    zg = maps.ground_z(cam.C)
+    mt = match_window(gray, cam, maps.ortho, maps.dsm, feat_conf, maps.gsd, zg, vconf, maps.flat_z)
+    tol = verification_tolerance(cam, maps.gsd, zg, float(vconf["verify_px"]))
+    v = verify(mt, polish(mt, cam, tol, int(vconf["polish_rounds"]), bool(vconf["polish_distinct"])), tol)
+    strong = bool(ad["enabled"] and v["score"] >= int(ad["strong_score"])
+                  and (v["rms_px"] or np.inf) <= float(ad["strong_rms_frac"]) * float(v["tolerance_px"]))  # fmt: skip
+    rec["feature_map"].update(score=v["score"], strong=strong, seconds=round(time.perf_counter() - t, 3))
+    if v["score"] < min_inl:  # covered, but off the map by more than the tolerance: a start only
+        rec["feature_map"].update(used=False, start=True, fallback=f"map-only path from the feature-map "
+                                  f"pose as its start (it verifies {v['score']} < {min_inl} against the map)")  # fmt: skip
+        return None
+    if strong:  # a weak one must not change the window the map-only poses are scored on
+        windows.append(mt)
+    rec["feature_map"]["used"] = True
+    return ("feature map 2D-3D", cam, r.pnp)
+
+
 def _cam_record(cam: PinholeCamera) -> dict:
     return {"camera_center_xyz": [float(v) for v in cam.C], "R_world_to_cam": np.asarray(cam.R).tolist()}
 
@@ -361,6 +397,8 @@ def localize_image(
     windows: list[Matches] = []
     vconf = {**DIRECT_DEFAULTS, **(c.get("direct") or {})}
     map_px = maps.whole_map_px()
+    fm_weak = None  # a feature-map pose that verified, but not strong
+    fm_start = False  # a feature-map pose that did not verify: the direct matching's start
 
     def whole_map() -> None:
         """Direct matching on the whole (small) map, the frame at full size (at most 3 Mpx)."""
@@ -381,11 +419,21 @@ def localize_image(
         K, dist = camera_matrix(camera, w, h)
         und = cv2.undistort(rgb, K, dist) if np.any(dist) else rgb
         gray = cv2.cvtColor(und, cv2.COLOR_RGB2GRAY)
-        if map_px <= int(vconf["whole_map_first_px"]):
+        if maps.feature_map is not None:  # earlier sets' feature maps first
+            t = time.perf_counter()
+            fm = feature_map_hypothesis(gray, K, w, h, maps, vconf, feat_conf, min_inl, rec, windows,
+                                        {**DEFAULTS["adaptive"], **(c.get("adaptive") or {})})  # fmt: skip
+            hyps += [fm] if fm and rec["feature_map"]["strong"] else []  # strong: no map-only search
+            fm_weak = fm if fm and not hyps else None  # weak: one more hypothesis after it
+            fm_start = bool(rec["feature_map"].get("start"))  # covered, not verified: a start
+            timings["feature_map_s"] = time.perf_counter() - t
+        if not hyps and map_px <= int(vconf["whole_map_first_px"]):
             whole_map()  # a small map: cheaper than the coarse search
         t0c = time.perf_counter()
-        co = (coarse_locate(gray, K, maps.coarse_index, c["coarse"], maps.dense) if not hyps else
-              Coarse(False, reason="not run: the whole-map direct matching gave a pose"))  # fmt: skip
+        co = (coarse_locate(gray, K, maps.coarse_index, c["coarse"], maps.dense) if not hyps and not fm_start else
+              Coarse(False, reason="not run: the " + ("feature map gave a pose" if rec.get("feature_map", {}).get("strong")
+                                                      else "whole-map direct matching gave a pose" if hyps
+                                                      else "feature map gave a start")))  # fmt: skip
         timings["coarse_s"] = time.perf_counter() - t0c
         focal_note = camera.get("source", "given")  # "exif": from frame_exif
     else:
@@ -424,6 +472,9 @@ def localize_image(
     rec["coarse"] = {"ok": co.ok, "inliers": co.inliers, "reason": co.reason,
                      "candidates": co.candidates}  # fmt: skip
     starts = [(co.R, co.C, "coarse PnP")] if co.ok else []
+    if fm_start:  # the feature-map pose: the first start of the direct matching
+        fp = rec["feature_map"]["pose"]
+        starts.insert(0, (np.asarray(fp["R_world_to_cam"]), np.asarray(fp["camera_center_xyz"]), "feature map"))
     starts += [
         (R, C, f"nadir vote ({v} votes)") for R, C, v in co.hypotheses[: int(c["vote_starts"])]
     ]
@@ -444,6 +495,8 @@ def localize_image(
     tried_whole = any(a["start"] == "whole map" for a in rec.get("direct_attempts", []))
     if not hyps and not tried_whole and map_px <= int(vconf["whole_map_px"]):
         whole_map()
+    if fm_weak:  # a weakly verified feature-map pose competes with the map-only ones
+        hyps.append(fm_weak)
 
     # every hypothesis is polished by LM on its guided matches over the whole frame, then scored
     # (guided inliers, the same map window); the intensity refinement of the best must beat it
@@ -610,10 +663,11 @@ def evaluate(rec: dict, truth: dict) -> dict:
 
 
 def localize_set(images: Any, camera: dict | None, index_dir, ortho_vrt, dsm_vrt, laz_paths,
-                 conf: dict, out_dir, truth_path: str | None = None,
-                 ground_z: float = 0.0) -> list[dict]:  # fmt: skip
+                 conf: dict, out_dir, truth_path: str | None = None, ground_z: float = 0.0,
+                 feature_maps: list | None = None) -> list[dict]:  # fmt: skip
     """Rule ``localize_frames``: every frame of a set -> results/frames/{set}/. ``dsm_vrt`` None:
-    the ground is the plane z = ``ground_z`` (recorded as ``ground`` in every pose)."""
+    the ground is the plane z = ``ground_z`` (recorded as ``ground`` in every pose).
+    ``feature_maps``: earlier sets' sfm_points.laz, tried first (``georeg.frames.feature_map``)."""
     out = Path(out_dir)
     paths = frame_images(images)
     if not paths:
@@ -628,6 +682,10 @@ def localize_set(images: Any, camera: dict | None, index_dir, ortho_vrt, dsm_vrt
         dense_coarse=bool(conf.get("dense_coarse", DEFAULTS["dense_coarse"])),
         ground_z=ground_z,
     )
+    if feature_maps:
+        from georeg.frames.feature_map import load_feature_maps
+
+        maps.feature_map = load_feature_maps(feature_maps, maps.crs_wkt, maps.bounds(), conf.get("feature_map"))
     truth = {}
     if truth_path:
         import json
@@ -643,5 +701,12 @@ def localize_set(images: Any, camera: dict | None, index_dir, ortho_vrt, dsm_vrt
         poses.append(rec)
     write_geojson(out / "cameras.geojson", poses, maps.crs_wkt)
     write_kml(out / "cameras.kml", poses, maps.crs_wkt)
+    if maps.feature_map is not None:
+        served = sum(1 for p in poses if (p.get("feature_map") or {}).get("used")
+                     and str(p.get("path", "")).startswith("feature map"))  # fmt: skip
+        log.info("feature maps served %d of %d frames", served, len(poses))
+        if not served:
+            log.warning("the feature maps %s served none of the frames: every frame took the "
+                        "map-only path (recorded per frame as feature_map.fallback)", feature_maps)  # fmt: skip
     write_poses(out / "poses.json", poses)
     return poses

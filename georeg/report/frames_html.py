@@ -259,6 +259,25 @@ def overlays_html(files: list[Path]) -> str:
     return f'<div class="overlays">{"".join(out)}</div>' if out else ""
 
 
+def feature_map_note(poses: list[dict]) -> str:
+    """Which frames the earlier sets' feature maps served (issue 33), and their coverage; '' when
+    the set used none."""
+    tried = [p for p in poses if p.get("feature_map")]
+    if not tried:
+        return ""
+    served = [p for p in tried if str(p.get("path", "")).startswith("feature map")]
+    names = ", ".join(html.escape(Path(str(p["image"])).name) for p in served[:12]) or "none"
+    more = f" and {len(served) - 12} more" if len(served) > 12 else ""
+    src = ", ".join(html.escape(s) for s in tried[0]["feature_map"].get("sources", []))
+    pts = tried[0]["feature_map"].get("map_points")
+    falls = sum(1 for p in tried if not p["feature_map"].get("used"))
+    cls = "note" if served else "note bad"
+    return (f'<p class="{cls}" data-key="feature_map_served" data-value="{len(served)}">feature maps '
+            f"{src} ({pts} points): served {len(served)} of {len(tried)} frames tried ({names}{more}); "
+            f"{falls} not covered or not verified took the map-only path (feature_map.fallback in "
+            "poses.json).</p>")
+
+
 def set_section(name: str, poses_json: str | Path, truth_json: str | Path | None = None) -> str:
     """One frame set: the table (or the video summary and path plot) and the overlays."""
     poses = read_poses(poses_json)
@@ -272,6 +291,9 @@ def set_section(name: str, poses_json: str | Path, truth_json: str | Path | None
         parts.append(f'<p class="note bad" data-key="flat_ground" data-value="{len(flat)}">'
                      f"{len(flat)} of {len(poses)} entries localised on a flat ground (the map has "
                      f"no elevation): {html.escape(str(flat[0]['ground']['warning']))}.</p>")  # fmt: skip
+    fm_note = feature_map_note(poses)
+    if fm_note:
+        parts.append(fm_note)
     if len(poses) <= MAX_ROWS:
         parts.append(frame_table(poses, name))
         files = overlay_files(poses, Path(poses_json).parent / "overlays", None)

@@ -22,6 +22,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from georeg.frames.feature_map import colmap_sift
 from georeg.frames.pnp import solve_pnp
 from georeg.frames.render import PinholeCamera
 
@@ -109,24 +110,6 @@ class Tracker:
 def _project(xyz: np.ndarray, R: np.ndarray, C: np.ndarray, K: np.ndarray, size: tuple[int, int]):
     """(uv, depth) of world points in the camera (K, R, C) of image ``size`` (w, h)."""
     return PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], *size, R, C).project(xyz)
-
-
-def colmap_sift(max_features: int = 4000):
-    """COLMAP's CPU SIFT (L1-root normalised uint8 descriptors, as in the SfM database)."""
-    import pycolmap
-
-    o = pycolmap.FeatureExtractionOptions()
-    o.sift.max_num_features = int(max_features)
-    o.num_threads = 1
-    o.use_gpu = False
-    ex = pycolmap.FeatureExtractor.create(o)
-
-    def extract(gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        kp, d = ex.extract_from_uint8_array(np.ascontiguousarray(gray, np.uint8))
-        xy = np.array([[k.x, k.y] for k in kp], float).reshape(-1, 2) - 0.5  # COLMAP: centre 0.5
-        return xy, np.asarray(d.data, np.float32).reshape(len(xy), -1)
-
-    return extract
 
 
 class PointMapLocalizer:

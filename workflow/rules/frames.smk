@@ -8,6 +8,25 @@ from georeg.io.video import frame_images
 FRAME_LOC = {k: v for k, v in (config.get("frame_loc") or {}).items() if k != "demo_frames"}
 
 
+def feature_map_laz(name):
+    """The feature map a frame set writes: feature_map.laz (write_feature_map), else a trajectory
+    set's sfm_points.laz; a path (not a set name) is itself."""
+    fs = (config.get("frames") or {}).get(name)
+    if fs is None:
+        return name
+    if fs.get("write_feature_map"):
+        return f"results/frames/{name}/feature_map.laz"
+    if name in VIDEO_SETS:
+        return f"results/frames/{name}/sfm_points.laz"
+    raise ValueError(f"frames: feature map {name!r} is an image set without write_feature_map: "
+                     "it writes no feature map")
+
+
+def frame_set_feature_maps(fset):
+    """The feature maps frame set ``fset`` uses (frames.<set>.feature_maps)."""
+    return [feature_map_laz(f) for f in config["frames"][fset].get("feature_maps") or []]
+
+
 rule localize_frames:
     input:
         images=lambda wc: frame_images(config["frames"][wc.fset].get("images")),
@@ -16,6 +35,7 @@ rule localize_frames:
         dsm=frame_dsm,
         laz=lambda wc: frame_laz_inputs(),
         truth=lambda wc: frame_set_truth(wc.fset),
+        feature_maps=lambda wc: frame_set_feature_maps(wc.fset),
     output:
         poses="results/frames/{fset}/poses.json",
         geojson="results/frames/{fset}/cameras.geojson",
@@ -39,3 +59,37 @@ rule localize_frames:
 
 
 TARGETS.append(expand("results/frames/{fset}/poses.json", fset=IMAGE_SETS))
+
+
+# Maps that grow (issue 33): a set with write_feature_map writes feature_map.laz, the feature
+# maps it used plus its own geo-registered points (a new file; inputs are never overwritten).
+GROW_SETS = [s for s in FRAME_SETS if config["frames"][s].get("write_feature_map")]
+
+
+rule grow_feature_map:
+    input:
+        poses="results/frames/{gset}/poses.json",
+        images=lambda wc: [] if wc.gset in VIDEO_SETS else frame_images(config["frames"][wc.gset].get("images")),
+        own=lambda wc: [f"results/frames/{wc.gset}/sfm_points.laz"] if wc.gset in VIDEO_SETS else [],
+        used=lambda wc: frame_set_feature_maps(wc.gset),
+        ortho="results/map/mosaic/ortho.vrt",
+        dsm=frame_dsm,
+    output:
+        laz="results/frames/{gset}/feature_map.laz",
+        descriptors="results/frames/{gset}/feature_map_descriptors.npy",
+    params:
+        conf=(config.get("frame_loc") or {}).get("feature_map") or {},
+        ground_z=config["map"].get("ground_z", 0.0),
+        video=lambda wc: wc.gset in VIDEO_SETS,
+    wildcard_constraints:
+        gset="|".join(re.escape(s) for s in GROW_SETS) or "(?!)",
+    log:
+        "logs/frames/grow_{gset}.log",
+    threads: 1
+    resources:
+        mem_mb=2000,
+    script:
+        "../../scripts/frames_grow_feature_map.py"
+
+
+TARGETS.append(expand("results/frames/{gset}/feature_map.laz", gset=GROW_SETS))

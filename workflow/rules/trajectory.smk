@@ -13,6 +13,7 @@ rule trajectory:
         dsm=frame_dsm,
         laz=lambda wc: frame_laz_inputs(),
         truth=lambda wc: frame_set_truth(wc.vset),
+        feature_maps=lambda wc: frame_set_feature_maps(wc.vset),
     output:
         poses="results/frames/{vset}/poses.json",
         info="results/frames/{vset}/trajectory.json",
