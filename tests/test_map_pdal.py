@@ -1,0 +1,231 @@
+"""PDAL as the point-cloud backend: pipelines, errors, and tiles against the laspy path.
+
+The pipeline parsing tests run everywhere; the rest skip when the ``pdal`` package does not
+import (``.ci/install-pdal`` builds it) or ``../shared/data`` is absent. Tolerances and the
+figures behind them: docs/experiments/2026-11-26-pdal.md (``benchmarks/bench_pdal.py``).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+import rasterio
+
+from georeg.io.errors import ConfigError, InputError
+from georeg.map import pdal_points
+from georeg.map.elevation import LAYERS, make_elevation_tile
+from georeg.map.grid import MapGrid, make_ortho_tile, write_grid
+
+SHARED = Path(__file__).parents[1].parent / "shared" / "data"
+AUTZEN = SHARED / "autzen"
+BRIGHTON = SHARED / "brighton"
+needs_pdal = pytest.mark.skipif(
+    not pdal_points.available(), reason=f"pdal does not import ({pdal_points.import_error()})"
+)
+SMALL = {
+    "seed": 7, "size_m": 640, "gsd_m": 1.0, "margin_m": 128, "lidar_density": 2.0,
+    "lidar_tiles": 2, "lidar_crs": "EPSG:2229",
+    "query": {"samples": 64, "lines": 64, "bands": 8, "gsd_m": 0.8, "heading_deg": 35.0},
+}  # fmt: skip
+OUTLIER = {"enabled": True, "nb_neighbors": 8, "std_ratio": 3.0}
+
+
+def _settings(backend: str, pipeline=None, ground=pdal_points.DEFAULT_GROUND) -> dict:
+    s = {"outlier": OUTLIER}
+    if backend == "pdal":
+        s |= {"backend": "pdal", "pdal_pipeline": pipeline, "pdal_ground": ground}
+    return s
+
+
+def _tile(ortho: Path, out: Path, lidar: list[str], s: dict) -> dict[str, str]:
+    outs = {k: str(out / f"{k}.tif") for k in LAYERS} | {"points": str(out / "points.laz")}
+    make_elevation_tile(str(ortho), outs, lidar, settings=s)
+    return outs
+
+
+def _layer(outs: dict[str, str], name: str) -> np.ndarray:
+    with rasterio.open(outs[name]) as ds:
+        return ds.read(1, masked=True).filled(np.nan).astype(np.float64)
+
+
+def _diff(a: dict[str, str], b: dict[str, str], name: str) -> tuple[float, np.ndarray]:
+    """(valid-mask agreement, |a - b| over cells valid in both)."""
+    x, y = _layer(a, name), _layer(b, name)
+    va, vb = np.isfinite(x), np.isfinite(y)
+    return float((va == vb)[va | vb].mean()), np.abs(x - y)[va & vb]
+
+
+# ------------------------------------------------------------------ pipelines (no PDAL needed)
+
+
+def test_default_pipeline_is_the_outlier_setting():
+    stages = pdal_points.resolve_pipeline(None, {"enabled": True, "nb_neighbors": 6, "std_ratio": 2.5})
+    assert stages[0] == {"type": "filters.outlier", "method": "statistical", "mean_k": 6, "multiplier": 2.5}
+    assert stages[1] == {"type": "filters.range", "limits": "Classification![7:7]"}
+    assert pdal_points.resolve_pipeline(None, {"enabled": False}) == []
+
+
+def test_pipeline_forms(tmp_path):
+    as_list = pdal_points.resolve_pipeline(["filters.smrf", {"type": "filters.range", "limits": "Z[0:9]"}])
+    assert as_list == [{"type": "filters.smrf"}, {"type": "filters.range", "limits": "Z[0:9]"}]
+    f = tmp_path / "p.json"
+    f.write_text(json.dumps({"pipeline": [{"type": "filters.smrf", "tag": "g"}]}))
+    assert pdal_points.resolve_pipeline(str(f)) == [{"type": "filters.smrf"}]
+    assert pdal_points.resolve_pipeline('[{"type": "filters.smrf"}]') == [{"type": "filters.smrf"}]
+    assert pdal_points.resolve_ground(None) is None
+    assert pdal_points.resolve_ground("filters.csf") == {"type": "filters.csf"}
+
+
+def test_bad_pipelines_name_the_file_and_stage(tmp_path):
+    f = tmp_path / "broken.json"
+    f.write_text('[{"type": "filters.smrf",}')
+    with pytest.raises(ConfigError, match=r"broken\.json: the PDAL pipeline JSON does not parse"):
+        pdal_points.resolve_pipeline(str(f))
+    with pytest.raises(ConfigError, match=r"map\.pdal_pipeline: the PDAL pipeline JSON does not parse"):
+        pdal_points.resolve_pipeline("[{")
+    with pytest.raises(ConfigError, match=r"stage 2 'readers\.las': only filters"):
+        pdal_points.resolve_pipeline(["filters.smrf", "readers.las"])
+    with pytest.raises(ConfigError, match=r"stage 1 .*needs a 'type'"):
+        pdal_points.resolve_pipeline([{"limits": "Z[0:1]"}])
+    with pytest.raises(ConfigError, match="lidar_backend must be one of"):
+        pdal_points.resolve_backend("liblas")
+
+
+@pytest.mark.skipif(pdal_points.available(), reason="pdal imports here")
+def test_backend_without_pdal():
+    assert pdal_points.resolve_backend("auto") == "laspy"
+    with pytest.raises(ConfigError, match="lidar_backend: pdal, but the pdal Python package"):
+        pdal_points.resolve_backend("pdal")
+
+
+# ------------------------------------------------------------------ autzen (real LiDAR)
+
+
+@pytest.fixture(scope="module")
+def autzen(tmp_path_factory):
+    if not (AUTZEN / "autzen_trim.laz").exists():
+        pytest.skip(f"{AUTZEN} not available")
+    if not pdal_points.available():
+        pytest.skip("pdal does not import")
+    tmp = tmp_path_factory.mktemp("autzen_pdal")
+    write_grid(tmp / "grid.json", [str(AUTZEN / "autzen.jpg")], 1024, 64)
+    tile = "r004_c001"  # the LiDAR strip runs along the south edge
+    make_ortho_tile(tmp / "grid.json", tile, tmp / "ortho.tif")
+    laz = [str(AUTZEN / "autzen_trim.laz")]
+    ortho = tmp / "ortho.tif"
+    return {
+        "tmp": tmp,
+        "ortho": ortho,
+        "laz": laz,
+        "laspy": _tile(ortho, tmp / "laspy", laz, _settings("laspy")),
+        "pdal": _tile(ortho, tmp / "pdal", laz, _settings("pdal")),
+    }
+
+
+@needs_pdal
+def test_autzen_pdal_tiles_match_laspy(autzen):
+    """Same points, same CRS/unit rules; only the outlier filters differ (open3d vs PDAL)."""
+    for name, tol in (("dsm", 0.05), ("dtm", 0.05)):
+        agree, d = _diff(autzen["laspy"], autzen["pdal"], name)
+        assert d.size > 50_000
+        assert agree > 0.995, name
+        assert np.median(d) < 1e-4, name
+        assert (d <= tol).mean() > 0.99, name
+    n_l = len(laspy.read(autzen["laspy"]["points"]))
+    n_p = len(laspy.read(autzen["pdal"]["points"]))
+    assert abs(n_l - n_p) < 0.01 * n_l
+    assert 120.0 < np.nanmin(_layer(autzen["pdal"], "dsm"))  # feet -> metres
+
+
+@needs_pdal
+def test_autzen_smrf_ground_vs_class2(autzen):
+    """The file's classes reset to 1 so filters.smrf classifies ground; vs the file's class 2."""
+    pipe = pdal_points.default_pipeline(OUTLIER) + [
+        {"type": "filters.assign", "value": "Classification = 1"}
+    ]
+    smrf = _tile(autzen["ortho"], autzen["tmp"] / "smrf", autzen["laz"], _settings("pdal", pipe))
+    g = np.asarray(laspy.read(smrf["points"]).classification)
+    assert 0.1 < (g == 2).mean() < 0.6
+    agree, d = _diff(autzen["laspy"], smrf, "dtm")
+    assert agree > 0.99
+    assert np.median(d) < 0.15 and np.percentile(d, 90) < 0.6
+    # without the ground stage the DTM is the lowest-point surface: further from the class-2 DTM
+    low = _tile(autzen["ortho"], autzen["tmp"] / "low", autzen["laz"], _settings("pdal", pipe, None))
+    assert (np.asarray(laspy.read(low["points"]).classification) == 2).sum() == 0
+    _, d_low = _diff(autzen["laspy"], low, "dtm")
+    assert np.percentile(d, 90) < np.percentile(d_low, 90)
+
+
+@needs_pdal
+def test_stage_failing_on_the_file_names_stage_and_file(autzen, tmp_path):
+    bad = [{"type": "filters.range", "limits": "NoSuchDimension[0:1]"}]
+    outs = {k: str(tmp_path / f"{k}.tif") for k in LAYERS} | {"points": str(tmp_path / "p.laz")}
+    with pytest.raises(InputError, match=r"autzen_trim\.laz: PDAL stage 1 'filters\.range' of map\.pdal_pipeline failed"):
+        make_elevation_tile(str(autzen["ortho"]), outs, autzen["laz"], settings=_settings("pdal", bad))
+    with pytest.raises(ConfigError, match=r"stage 2 'filters\.outlyer' is not a stage.*filters\.outlier"):
+        make_elevation_tile(
+            str(autzen["ortho"]), outs, autzen["laz"],
+            settings=_settings("pdal", ["filters.smrf", "filters.outlyer"]),
+        )  # fmt: skip
+    assert list(tmp_path.iterdir()) == []  # nothing written
+
+
+@needs_pdal
+def test_input_check_runs_the_pipeline(autzen):
+    from georeg.register.inputs import check_inputs
+
+    m = {"orthophoto": str(AUTZEN / "autzen.jpg"), "lidar": autzen["laz"], "lidar_backend": "pdal"}
+    assert check_inputs({"map": m}, generated=None) == []
+    bad = m | {"pdal_pipeline": [{"type": "filters.range", "limits": "NoSuchDimension[0:1]"}]}
+    (p,) = check_inputs({"map": bad}, generated=None)
+    assert "autzen_trim.laz" in p and "'filters.range'" in p
+    (p,) = check_inputs({"map": m | {"pdal_pipeline": "[{"}}, generated=None)
+    assert "does not parse" in p
+
+
+# ------------------------------------------------------------------ demo scene
+
+
+@needs_pdal
+def test_demo_pdal_tiles_match_laspy(tmp_path):
+    from georeg.demo import generate_scene
+
+    generate_scene(SMALL, tmp_path / "scene")
+    lidar = [str(p) for p in sorted((tmp_path / "scene" / "lidar").glob("tile_*.laz"))]
+    write_grid(tmp_path / "grid.json", [str(tmp_path / "scene" / "orthophoto.tif")], 1024, 64)
+    t = MapGrid.load(tmp_path / "grid.json").tiles["r000_c000"]
+    make_ortho_tile(tmp_path / "grid.json", "r000_c000", tmp_path / "ortho.tif")
+    la = _tile(tmp_path / "ortho.tif", tmp_path / "laspy", lidar, _settings("laspy"))
+    pd = _tile(tmp_path / "ortho.tif", tmp_path / "pdal", lidar, _settings("pdal"))
+    for name in ("dsm", "dtm"):
+        agree, d = _diff(la, pd, name)
+        assert agree > 0.995 and np.median(d) < 1e-4 and (d <= 0.05).mean() > 0.99, name
+    with rasterio.open(tmp_path / "scene" / "truth" / "dsm.tif") as ds:
+        truth = ds.read(1, window=t.window).astype(np.float64)
+    dsm = _layer(pd, "dsm")
+    ok = np.isfinite(dsm)
+    assert np.nanmax(dsm) < truth.max() + 1.0  # the injected birds are gone
+    assert np.median(np.abs(dsm[ok] - truth[ok])) < 0.15
+
+
+# ------------------------------------------------------------------ an unclassified cloud
+
+
+@needs_pdal
+def test_brighton_unclassified_cloud_gets_ground(tmp_path):
+    if not (BRIGHTON / "model.laz").exists():
+        pytest.skip(f"{BRIGHTON} not available")
+    write_grid(tmp_path / "grid.json", [str(BRIGHTON / "map_ortho.tif")], 1024, 64)
+    make_ortho_tile(tmp_path / "grid.json", "r000_c000", tmp_path / "ortho.tif")
+    laz = [str(BRIGHTON / "model.laz")]
+    pd = _tile(tmp_path / "ortho.tif", tmp_path / "pdal", laz, _settings("pdal"))
+    cls = np.asarray(laspy.read(pd["points"]).classification)
+    assert 0.05 < (cls == 2).mean() < 0.95  # the file has class 0 only
+    dsm, dtm, ndsm = (_layer(pd, k) for k in ("dsm", "dtm", "ndsm"))
+    ok = np.isfinite(dsm)
+    assert np.isfinite(dtm[ok]).all() and (dtm[ok] <= dsm[ok] + 1e-6).all()
+    assert np.nanmedian(ndsm) < 0.5 and np.nanpercentile(ndsm, 99) > 2.0
