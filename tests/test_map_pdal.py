@@ -64,7 +64,7 @@ def _diff(a: dict[str, str], b: dict[str, str], name: str) -> tuple[float, np.nd
 
 def test_default_pipeline_is_the_outlier_setting():
     stages = pdal_points.resolve_pipeline(None, {"enabled": True, "nb_neighbors": 6, "std_ratio": 2.5})
-    assert stages[0] == {"type": "filters.outlier", "method": "statistical", "mean_k": 6, "multiplier": 2.5}
+    assert stages[0] == {"type": "filters.outlier", "method": "statistical", "mean_k": 5, "multiplier": 2.5}
     assert stages[1] == {"type": "filters.range", "limits": "Classification![7:7]"}
     assert pdal_points.resolve_pipeline(None, {"enabled": False}) == []
 

@@ -86,7 +86,12 @@ def resolve_backend(choice: str = "auto") -> str:
 
 
 def default_pipeline(outlier: dict[str, Any] | None = None) -> list[dict[str, Any]]:
-    """The pipeline of ``map_prep.outlier``: PDAL's statistical outlier filter, outliers dropped."""
+    """The pipeline of ``map_prep.outlier``: PDAL's statistical outlier filter, outliers dropped.
+
+    open3d counts the point itself (distance 0) among its ``nb_neighbors``, PDAL does not: with
+    ``mean_k = nb_neighbors - 1`` every mean distance is open3d's times nb/(nb - 1), and so are
+    the global mean and standard deviation, so the same points are removed.
+    """
     o = outlier or {}
     if not o.get("enabled", True):
         return []
@@ -94,7 +99,7 @@ def default_pipeline(outlier: dict[str, Any] | None = None) -> list[dict[str, An
         {
             "type": "filters.outlier",
             "method": "statistical",
-            "mean_k": int(o.get("nb_neighbors", 8)),
+            "mean_k": max(1, int(o.get("nb_neighbors", 8)) - 1),
             "multiplier": float(o.get("std_ratio", 3.0)),
         },
         {"type": "filters.range", "limits": f"Classification![{OUTLIER_CLASS}:{OUTLIER_CLASS}]"},
