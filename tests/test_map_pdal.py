@@ -8,6 +8,7 @@ figures behind them: docs/experiments/2026-11-26-pdal.md (``benchmarks/bench_pda
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import laspy
@@ -229,3 +230,52 @@ def test_brighton_unclassified_cloud_gets_ground(tmp_path):
     ok = np.isfinite(dsm)
     assert np.isfinite(dtm[ok]).all() and (dtm[ok] <= dsm[ok] + 1e-6).all()
     assert np.nanmedian(ndsm) < 0.5 and np.nanpercentile(ndsm, 99) > 2.0
+
+
+# ------------------------------------------------------------------ the rule through Snakemake
+
+
+def _pdal_config(tmp: Path, base: Path, name: str, **map_keys) -> Path:
+    import yaml
+
+    cfg = yaml.safe_load(base.read_text())
+    cfg["map"] |= map_keys
+    p = tmp / f"cfg_{name}.yaml"
+    p.write_text(yaml.safe_dump(cfg))
+    return p
+
+
+@needs_pdal
+@pytest.mark.slow
+def test_workflow_pdal_params_rerun_elevation_only_and_bad_pipeline_stops(tmp_path):
+    from test_map_synthetic import make_scene
+    from test_map_workflow import _config, _planned_rules, _smk
+
+    ortho, las, _ = make_scene(tmp_path)
+    base = _config(tmp_path, ortho, las, 3.0)
+    cfg = _pdal_config(tmp_path, base, "pdal", lidar_backend="pdal")
+    r = _smk(tmp_path, cfg)
+    assert r.returncode == 0, r.stderr[-3000:]
+    log = (tmp_path / "logs" / "map" / "map_tile_elevation" / "r000_c000.log").read_text()
+    assert "PDAL pipeline ['filters.outlier', 'filters.range']" in log
+    r = _smk(tmp_path, base, "-n")
+    assert _planned_rules(r.stdout + r.stderr) == {}  # auto = pdal here
+    for name, keys in (
+        ("range", {"pdal_pipeline": [{"type": "filters.range", "limits": "Z[-100:1000]"}]}),
+        ("laspy", {"lidar_backend": "laspy"}),
+    ):
+        r = _smk(tmp_path, _pdal_config(tmp_path, base, name, **keys), "-n", "--rerun-triggers", "params", "mtime")
+        planned = _planned_rules(r.stdout + r.stderr)
+        assert planned.get("map_tile_elevation") == 4, name
+        assert "map_tile_ortho" not in planned and "map_grid" not in planned, name
+    # a bad pipeline stops the run before any job, one line naming the stage (and the file)
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    bad = _pdal_config(fresh, base, "bad", pdal_pipeline=["filters.outlier", "filters.nosuch"])
+    r = _smk(fresh, bad)
+    assert r.returncode != 0 and "stage 2 'filters.nosuch' is not a stage" in r.stderr
+    bad = _pdal_config(fresh, base, "bad2", pdal_pipeline=[{"type": "filters.range", "limits": "Nope[0:1]"}])
+    r = _smk(fresh, bad)
+    assert r.returncode != 0
+    assert re.search(r"\.la[sz]: PDAL stage 1 'filters.range' of map.pdal_pipeline failed", r.stderr)
+    assert not (fresh / "results").exists()
