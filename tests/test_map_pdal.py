@@ -96,6 +96,21 @@ def test_bad_pipelines_name_the_file_and_stage(tmp_path):
         pdal_points.resolve_backend("liblas")
 
 
+def test_stage_coordinates_are_local_metres():
+    from georeg.map.lidar import Points
+
+    x, y = np.array([1000.0, 1010.0]), np.array([2000.0, 2003.0])
+    pts = Points(x, y, np.array([5.0, 7.5]), np.array([2, 1], np.uint8), np.ones(2, np.uint8),
+                 np.ones(2, np.uint8), np.array([10, 20], np.uint16))  # fmt: skip
+    scale = (0.3048, 0.3048)  # a map CRS in feet
+    arr = pdal_points.to_array(pts, (1000.0, 2000.0), scale)
+    assert np.allclose(arr["X"], [0.0, 3.048]) and np.allclose(arr["Y"], [0.0, 0.9144])
+    assert arr["Z"].tolist() == [5.0, 7.5] and arr["Classification"].tolist() == [2, 1]
+    back = pdal_points.from_array(arr, (1000.0, 2000.0), scale)
+    assert np.allclose(back.x, x, atol=1e-9) and np.allclose(back.y, y, atol=1e-9)
+    assert back.intensity.tolist() == [10, 20]
+
+
 @pytest.mark.skipif(pdal_points.available(), reason="pdal imports here")
 def test_backend_without_pdal():
     assert pdal_points.resolve_backend("auto") == "laspy"
