@@ -10,6 +10,10 @@ gaps (under buildings, trees) are interpolated wherever the DSM is defined. nDSM
 clipped at 0. Rasterization runs on the tile grown by ``point_margin_m`` so the outlier filter and
 the interpolation see context across the tile edge, then is cropped.
 
+Point clouds are read and filtered by laspy + open3d or, with ``map.lidar_backend`` pdal (auto:
+when PDAL imports), by PDAL and the user's ``map.pdal_pipeline``, which can also classify ground
+(SMRF) for clouds without a ground class (:mod:`georeg.map.pdal_points`).
+
 DEM (``map.dem``, no LiDAR): the DEM is resampled onto the tile grid; DSM = DTM = DEM, nDSM = 0,
 density = DEM posts per m2 where the DEM is valid.
 """
@@ -33,7 +37,7 @@ from scipy.interpolate import griddata
 from scipy.spatial import Delaunay
 
 from georeg.io.raster import ELEV_NODATA, on_grid, open_raster, read, read_masks, write_cog
-from georeg.map import lidar
+from georeg.map import lidar, pdal_points
 
 log = logging.getLogger(__name__)
 
@@ -279,21 +283,39 @@ def lidar_tile(
     dtm_window_m: float = 30.0,
     chunk_points: int = 1_000_000,
     drop_classes: tuple[int, ...] = (7, 18),
+    backend: str = "laspy",
+    pdal_pipeline: Any = None,
+    pdal_ground: Any = None,
 ) -> tuple[dict[str, np.ndarray], lidar.Points]:
-    """Surfaces on ``grid`` and the filtered points inside it, from the overlapping LAS/LAZ files."""
+    """Surfaces on ``grid`` and the filtered points inside it, from the overlapping point clouds.
+
+    ``backend`` ``laspy``: LAS/LAZ read by laspy, open3d outlier removal (``outlier``).
+    ``pdal`` (``auto`` when it imports): read by PDAL, then the filter stages ``pdal_pipeline``
+    (null: the PDAL twin of ``outlier``) and, where no point is ground, ``pdal_ground``
+    (:mod:`georeg.map.pdal_points`). Pipeline errors are raised before anything is read.
+    The rule passes the backend ``map.lidar_backend`` resolves to; the library default is laspy.
+    """
     outlier = outlier or {}
+    backend = pdal_points.resolve_backend(backend)
+    if backend == "pdal":
+        stages = pdal_points.resolve_pipeline(pdal_pipeline, outlier)
+        ground = pdal_points.resolve_ground(pdal_ground)
+        pdal_points.check_stages(stages)
+        if ground is not None:
+            pdal_points.check_stages([ground], "map.pdal_ground")
     sx, _ = grid.metres_per_unit()
     margin_px = math.ceil(point_margin_m / (abs(grid.transform.a) * sx))
     big = grid.grown(margin_px)
     pcrs = lidar.split_crs(grid.pcrs)[0]
-    infos = [lidar.scan(p, lidar_crs) for p in lidar_files]
+    infos = [pdal_points.scan_any(p, lidar_crs, backend) for p in lidar_files]
     hits = [i for i in infos if lidar.overlaps(lidar.bounds_in(i, pcrs), big.bounds)]
     if not hits:
         log.warning(
             "no LiDAR file overlaps this tile (%s): empty coverage",
             ", ".join(lidar_files) or "no map.lidar",
         )
-    pts = lidar.read_points(hits, pcrs, big.bounds, chunk_points)
+    reader = pdal_points.read_points if backend == "pdal" else lidar.read_points
+    pts = reader(hits, pcrs, big.bounds, chunk_points)
     if drop_classes and len(pts):
         noise = np.isin(pts.classification, np.asarray(drop_classes, np.uint8))
         if noise.any():
@@ -302,7 +324,12 @@ def lidar_tile(
             )
             pts = pts.take(~noise)
     n0 = len(pts)
-    if n0 and outlier.get("enabled", True):
+    if n0 and backend == "pdal":
+        b = big.bounds
+        pts = pdal_points.filter_points(
+            pts, stages, ground, (b[0], b[1]), grid.metres_per_unit(), [i.path for i in hits]
+        )
+    elif n0 and outlier.get("enabled", True):
         keep = lidar.remove_outliers(
             _metric_xyz(pts, grid), outlier.get("nb_neighbors", 8), outlier.get("std_ratio", 3.0)
         )
@@ -445,6 +472,9 @@ def make_elevation_tile(
             dtm_window_m=s.get("dtm_window_m", 30.0),
             chunk_points=chunk_points,
             drop_classes=tuple(s.get("drop_classes", (7, 18))),
+            backend=s.get("backend", "laspy"),
+            pdal_pipeline=s.get("pdal_pipeline"),
+            pdal_ground=s.get("pdal_ground", pdal_points.DEFAULT_GROUND),
         )
     elif dem:
         surf = dem_tile(grid, dem, s.get("dem_resampling", "bilinear"))

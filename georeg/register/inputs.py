@@ -3,8 +3,9 @@
 The workflow calls :func:`check_inputs` right after the JSON-schema validation of the config, so a
 wrong path, an unreadable file, a missing CRS, a geographic map CRS or a query band the cube does
 not have stops the run before any job, with one line per problem naming its file or config key.
-Only headers and metadata are read (no pixels, no points), so the check costs well under a second
-per input. What needs pixels (an all-nodata band, a corrupt block) is still reported by the rule
+Only headers and metadata are read (no pixels; no points, except that with the PDAL backend the
+first few thousand points of each point cloud go through ``map.pdal_pipeline`` so that a failing
+stage stops the run here), so the check costs well under a second per input. What needs pixels (an all-nodata band, a corrupt block) is still reported by the rule
 that reads them, with the same kind of message.
 """
 
@@ -21,7 +22,7 @@ from georeg.io.errors import GeoregError
 from georeg.io.query import open_query
 from georeg.io.raster import open_raster
 from georeg.io.video import frame_images
-from georeg.map import lidar
+from georeg.map import pdal_points
 from georeg.register.band import parse_band_spec, resolve_band
 
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".webm"}
@@ -51,7 +52,35 @@ class _Checker:
     def add(self, line: str) -> None:
         self.problems.append(line)
 
-    def map(self, m: Mapping[str, Any]) -> None:
+    def lidar(self, m: Mapping[str, Any], outlier: Mapping[str, Any] | None) -> None:
+        """Point-cloud headers; with PDAL also the pipeline (parsed, stages known) and a dry run
+        of it on the first points of each file, so a stage that fails stops the run here."""
+        files = list(m.get("lidar") or [])
+        try:
+            backend = pdal_points.resolve_backend(m.get("lidar_backend", "auto")) if files else "laspy"
+            stages = ground = None
+            if backend == "pdal":
+                stages = pdal_points.resolve_pipeline(m.get("pdal_pipeline"), dict(outlier or {}))
+                ground = pdal_points.resolve_ground(
+                    m.get("pdal_ground", pdal_points.DEFAULT_GROUND)
+                )
+                pdal_points.check_stages(stages)
+                if ground is not None:
+                    pdal_points.check_stages([ground], "map.pdal_ground")
+        except GeoregError as exc:
+            self.add(str(exc))
+            return
+        for path in files:
+            if self.made(path):
+                continue
+            try:
+                pdal_points.scan_any(path, m.get("lidar_crs"), backend)
+                if stages is not None:
+                    pdal_points.dry_run(path, stages, ground, m.get("lidar_crs"))
+            except GeoregError as exc:
+                self.add(f"map.lidar: {exc}")
+
+    def map(self, m: Mapping[str, Any], outlier: Mapping[str, Any] | None = None) -> None:
         orthos = m.get("orthophoto")
         orthos = [orthos] if isinstance(orthos, str) else list(orthos or [])
         if not orthos:
@@ -77,13 +106,7 @@ class _Checker:
                         )
             except GeoregError as exc:
                 self.add(f"map.orthophoto: {exc}")
-        for path in m.get("lidar") or []:
-            if self.made(path):
-                continue
-            try:
-                lidar.scan(path, m.get("lidar_crs"))
-            except GeoregError as exc:
-                self.add(f"map.lidar: {exc}")
+        self.lidar(m, outlier)
         if m.get("dem") and not self.made(m["dem"]):
             try:
                 with open_raster(m["dem"]):
@@ -153,7 +176,7 @@ def check_inputs(config: Mapping[str, Any], generated: str | None = "results") -
     ``results/demo/``) are written by rules and not checked here.
     """
     c = _Checker(generated)
-    c.map(config.get("map") or {})
+    c.map(config.get("map") or {}, (config.get("map_prep") or {}).get("outlier"))
     c.queries(config.get("queries") or {})
     c.frames(config.get("frames") or {})
     return c.problems

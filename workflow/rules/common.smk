@@ -113,11 +113,27 @@ def map_elevation_params():
         keys = ["point_margin_m", "drop_classes", "outlier", "dsm_fill_max_m", "dtm_fill", "dtm_window_m"]
         out = {k: mp[k] for k in keys}
         out["lidar_crs"] = config["map"].get("lidar_crs")
+        out.update(map_pdal_params())
         return out
     if map_elevation_source() == "dem":
         return {"dem_resampling": mp["dem_resampling"]}
     return {}
 
+
+
+def map_pdal_params():
+    """The point-cloud backend and, for PDAL, its resolved pipeline and ground stage: a change
+    reruns the elevation tiles only (nothing when laspy reads, so runs without PDAL are as before)."""
+    from georeg.map import pdal_points
+
+    m = config["map"]
+    if pdal_points.resolve_backend(m["lidar_backend"]) != "pdal":
+        return {}
+    return {
+        "backend": "pdal",
+        "pdal_pipeline": pdal_points.resolve_pipeline(m["pdal_pipeline"], config["map_prep"]["outlier"]),
+        "pdal_ground": pdal_points.resolve_ground(m["pdal_ground"]),
+    }
 
 
 def map_elevation_inputs(wildcards):
