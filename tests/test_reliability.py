@@ -268,3 +268,26 @@ def test_killed_writer_leaves_only_a_hidden_temporary_that_the_next_write_remove
     write_text(tmp_path / "grid.json", "{}\n")
     assert not stale.exists() and alive.exists()
     assert (tmp_path / "grid.json").read_text() == "{}\n"
+
+
+# ---------------------------------------------------------------- faults (issue 30)
+
+
+@pytest.mark.parametrize("where", [0.01, 0.2, 0.5, 0.9, -4])
+def test_laz_truncated_anywhere_is_named_truncated_before_the_run(tmp_path, where):
+    """A LAZ cut in its CRS records, in the middle of its points or in its chunk table (the last
+    bytes): the header check (before any rule) says truncated, never "no CRS"."""
+    from georeg.map.lidar import scan
+    from georeg.register.inputs import check_inputs
+
+    good = make_las(tmp_path / "good.laz", scene_points(density=1.0))
+    data = good.read_bytes()
+    bad = tmp_path / "cut.laz"
+    bad.write_bytes(data[: int(len(data) * where) if where > 0 else len(data) + where])
+    with pytest.raises(InputError) as e:
+        scan(bad)
+    clear_error(e, bad, "truncated", f"{bad.stat().st_size} bytes")
+    ortho = make_ortho(tmp_path / "ortho.tif")
+    problems = check_inputs({"map": {"orthophoto": str(ortho), "lidar": [str(bad)]}})
+    assert len(problems) == 1 and str(bad) in problems[0] and "truncated" in problems[0], problems
+    scan(good)  # the whole file is fine

@@ -299,6 +299,18 @@ def test_workflow_laz_with_zero_points(tmp_path):
     )  # fmt: skip
 
 
+def test_workflow_laz_truncated_in_the_middle(tmp_path):
+    """Issue 30: half a LAZ is refused by the input check, before any job starts."""
+    o = make_ortho(tmp_path / "ortho.tif")
+    good = make_las(tmp_path / "full.laz", scene_points(density=0.5))
+    cut = tmp_path / "cut.laz"
+    cut.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    r = _map_case(tmp_path, o, [cut], "results/map/tiles/r000_c000/dsm.tif")
+    tile = tmp_path / "results/map/tiles/r000_c000"
+    _expect_failure(
+        r, "cut.laz", "file is truncated", [tile / "dsm.tif", tile / "points.laz"], before_run=True
+    )
+
 def test_workflow_bad_query_cubes(tmp_path):
     """Six bad cubes and a missing orthophoto: all listed in one message before any job starts."""
     rng = np.random.default_rng(0)
