@@ -14,6 +14,7 @@ import subprocess
 import tracemalloc
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import rasterio
@@ -291,3 +292,28 @@ def test_laz_truncated_anywhere_is_named_truncated_before_the_run(tmp_path, wher
     problems = check_inputs({"map": {"orthophoto": str(ortho), "lidar": [str(bad)]}})
     assert len(problems) == 1 and str(bad) in problems[0] and "truncated" in problems[0], problems
     scan(good)  # the whole file is fine
+
+
+def _jpeg(path: Path, keep: float = 1.0) -> Path:
+    rng = np.random.default_rng(5)
+    img = cv2.GaussianBlur(rng.integers(0, 255, (240, 320, 3), dtype=np.uint8), (0, 0), 2)
+    data = cv2.imencode(".jpg", img)[1].tobytes()
+    path.write_bytes(data[: int(len(data) * keep)])
+    return path
+
+
+def test_truncated_jpeg_frame_is_refused_naming_it(tmp_path):
+    """A JPEG cut short decodes in OpenCV (grey bottom, a libjpeg warning only): it must be an
+    error naming the file, at the input check before the run and where the frame is read."""
+    from georeg.frames.localize import check_frame
+    from georeg.register.inputs import check_inputs
+
+    good, cut = _jpeg(tmp_path / "good.jpg"), _jpeg(tmp_path / "cut frame.jpg", 0.6)
+    assert check_frame(good).shape == (240, 320, 3)
+    with pytest.raises(InputError) as e:
+        check_frame(cut)
+    clear_error(e, cut, "truncated")
+    ortho = make_ortho(tmp_path / "ortho.tif")
+    cfg = {"map": {"orthophoto": str(ortho)}, "frames": {"f": {"images": [str(good), str(cut)]}}}
+    problems = check_inputs(cfg)
+    assert len(problems) == 1 and str(cut) in problems[0] and "truncated" in problems[0], problems

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import glob
 import logging
+import os
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -35,8 +36,34 @@ def frame_images(images: Any) -> list[str]:
     return out
 
 
+def jpeg_cut_short(path: str | Path) -> bool:
+    """True for a JPEG whose data ends before its end-of-image marker (OpenCV decodes such a file
+    without an error, the missing part grey). Reads the last bytes; only a file without the
+    marker there is decoded in full (PIL) to tell a cut file from one with trailing bytes."""
+    with open(path, "rb") as f:
+        if f.read(2) != b"\xff\xd8":
+            return False  # not a JPEG
+        f.seek(0, os.SEEK_END)
+        f.seek(max(0, f.tell() - 64))
+        tail = f.read().rstrip(b"\x00\r\n ")
+    if tail.endswith(b"\xff\xd9"):
+        return False
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            im.load()
+    except OSError:
+        return True
+    return False
+
+
 def read_frame(path: str | Path) -> np.ndarray:
-    """One frame image as RGB uint8; ``InputError`` naming the file when OpenCV cannot read it."""
+    """One frame image as RGB uint8; ``InputError`` naming the file when OpenCV cannot read it
+    or when it is a JPEG cut short."""
+    if Path(path).is_file() and jpeg_cut_short(path):
+        raise InputError(path, "JPEG data is truncated (the image ends early)",
+                         "copy or export the frame again")  # fmt: skip
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise InputError(path, "cannot read the frame image", "PNG/JPEG/TIFF readable by OpenCV")
