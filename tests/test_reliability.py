@@ -317,3 +317,23 @@ def test_truncated_jpeg_frame_is_refused_naming_it(tmp_path):
     cfg = {"map": {"orthophoto": str(ortho)}, "frames": {"f": {"images": [str(good), str(cut)]}}}
     problems = check_inputs(cfg)
     assert len(problems) == 1 and str(cut) in problems[0] and "truncated" in problems[0], problems
+
+
+def test_all_nan_cube_is_refused_saying_nan_and_all_zero_cube_is_a_constant_query(tmp_path):
+    """An all-NaN float cube: one error naming it that says NaN (it used to point at the 'data
+    ignore value', which it has none of), nothing written. An all-zero cube is a valid, constant
+    query: its band is the one a constant cube gives (the workflow test of a constant query:
+    not_found with its reason, products not_found)."""
+    nan = write_envi(tmp_path / "nan", np.full((5, 30, 40), np.nan, np.float32), "bil", extra=WL)
+    with pytest.raises(InputError) as e:
+        _band(tmp_path, nan, "1200nm")
+    clear_error(e, nan, "no valid pixel", "NaN")
+    no_files(tmp_path / "out")
+    bands = {}
+    for name, value in (("zero", 0), ("flat", 500)):
+        hdr = write_envi(tmp_path / name, np.full((5, 30, 40), value, np.uint16), "bil", extra=WL)
+        write_query_band(str(hdr), "1200nm", 0.8, str(tmp_path / f"{name}.tif"),
+                         str(tmp_path / f"{name}.json"))  # fmt: skip
+        with rasterio.open(tmp_path / f"{name}.tif") as ds:
+            bands[name] = ds.read()
+    assert np.array_equal(bands["zero"], bands["flat"])

@@ -83,15 +83,21 @@ def products(work: Path) -> dict[str, str]:
 
 
 def demo_config(work: Path) -> Path:
-    """config/test.yaml plus a query of one constant value (no features at all)."""
+    """config/test.yaml plus a query of one constant value and an all-zero float query (no
+    features at all)."""
     (work / "inputs").mkdir(parents=True)
     cube = np.full((5, 120, 100), 500, np.uint16)
     write_envi(
         work / "inputs" / "flat", cube, "bil",
         extra="wavelength units = nm\nwavelength = {900, 1100, 1200, 1500, 1700}\n",
     )  # fmt: skip
+    write_envi(
+        work / "inputs" / "zero", np.zeros((5, 120, 100), np.float32), "bil",
+        extra="wavelength units = nm\nwavelength = {900, 1100, 1200, 1500, 1700}\n",
+    )  # fmt: skip
     cfg = yaml.safe_load(TEST_CONFIG.read_text())
     cfg["queries"]["flat"] = {"image": "inputs/flat.hdr", "band": "1200nm", "gsd_m": 0.8}
+    cfg["queries"]["zero"] = {"image": "inputs/zero.hdr", "band": "1200nm", "gsd_m": 0.8}
     p = work / "config.yaml"
     p.write_text(yaml.safe_dump(cfg))
     return p
@@ -216,11 +222,12 @@ def test_repeatable_registration_and_versions_in_report(runs):
         assert f">{pkg}<" in html, pkg
 
 
-def test_constant_query_is_not_found_with_reason(runs):
-    reg = json.loads((runs["a"] / "results/queries/flat/registration.json").read_text())
+@pytest.mark.parametrize("name", ["flat", "zero"])
+def test_constant_query_is_not_found_with_reason(runs, name):
+    reg = json.loads((runs["a"] / f"results/queries/{name}/registration.json").read_text())
     assert reg["status"] == "not_found"
     assert reg["reason"]
-    prod = json.loads((runs["a"] / "results/products/flat/products.json").read_text())
+    prod = json.loads((runs["a"] / f"results/products/{name}/products.json").read_text())
     assert prod["status"] == "not_found" and prod["files"] == {}
 
 
