@@ -44,7 +44,9 @@ rule vocabulary:
         seed=index_vocabulary_seed(),
     log:
         "logs/index/vocabulary.log",
-    threads: workflow.cores
+    # every core given with --cores; 1 when none is (`snakemake --report` has no --cores, and
+    # `workflow.cores` raises there)
+    threads: lambda wildcards: workflow.resource_settings.cores or 1
     resources:
         mem_mb=4000,
     script:
