@@ -1,13 +1,32 @@
-"""Shared fixtures: where the repository and the public data live."""
+"""Shared fixtures: where the repository and the public data live; every test runs in a
+temporary working directory (never the checkout's results/, logs/ or .snakemake/)."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _session_cwd(tmp_path_factory):
+    """Module and session fixtures run in a fresh directory, not where pytest was started: a
+    relative path such as ``results/demo/orthophoto.tif`` never finds what a run of the workflow
+    in the checkout left there (the README's two commands pass in either order)."""
+    old = Path.cwd()
+    os.chdir(tmp_path_factory.mktemp("cwd"))
+    yield
+    os.chdir(old)
+
+
+@pytest.fixture(autouse=True)
+def _test_cwd(tmp_path, monkeypatch):
+    """Each test runs in its own temporary directory (its ``tmp_path``)."""
+    monkeypatch.chdir(tmp_path)
 
 
 @pytest.fixture(scope="session")

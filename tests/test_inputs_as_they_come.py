@@ -180,7 +180,10 @@ def test_geographic_map_crs_is_refused_with_the_utm_zone(tmp_path):
     assert utm_hint(-117.0, 34.0).startswith("EPSG:32611")
 
 
-def test_outputs_of_the_workflow_are_not_checked():
+def test_outputs_of_the_workflow_are_not_checked(tmp_path):
+    """Paths under results/ are made by rules: not opened before the run. The relative paths
+    resolve in this test's own directory (conftest), never in a checkout where the demo ran."""
+    assert Path.cwd() == tmp_path and not (tmp_path / "results").exists()
     cfg = {"map": {"orthophoto": "results/demo/orthophoto.tif", "lidar": ["results/demo/l.laz"]},
            "queries": {"d": {"image": "results/demo/queries/demo.hdr", "band": "1200nm"}}}  # fmt: skip
     assert check_inputs(cfg, generated="results") == []

@@ -7,7 +7,11 @@ products alone. Points: the demo's LiDAR reprojected to the map CRS as one map t
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
+import shutil
+import subprocess
 import warnings
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -312,3 +316,47 @@ def test_band_interleaved_cog_copy_keeps_pixels_and_is_a_cog(tmp_path):
         assert ds.overviews(1) == [2, 4] and ds.descriptions[2] == "1200.0 nm"
         assert ds.crs.to_epsg() == 32611 and ds.nodata == 0
     assert is_cog(tmp_path / "cog.tif")
+
+
+@contextlib.contextmanager
+def small_filesystem(where: Path, size_bytes: int):
+    """A tmpfs of ``size_bytes`` mounted at ``where`` (root only; the test skips otherwise)."""
+    where.mkdir(parents=True)
+    if os.geteuid() != 0 or not shutil.which("mount"):
+        pytest.skip("mounting a small filesystem needs root")
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_bytes}", "tmpfs", str(where)],
+                       capture_output=True, text=True)  # fmt: skip
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], capture_output=True)
+
+
+def _files(d: Path) -> list[str]:
+    return sorted(str(p.relative_to(d)) for p in d.rglob("*") if p.is_file())
+
+
+def test_disk_full_while_writing_products_then_rerun(run, tmp_path):
+    """Issue 30: ENOSPC in the middle of the products: one error naming the file and the full
+    disk, nothing half-written left (no output, no temporary), and after space is freed the same
+    call completes with the same cube."""
+    from georeg.io.errors import GeoregError
+
+    scene, inp = run["scene"], run["inp"]
+    need = sum(p.stat().st_size for p in run["out"].glob("cube.*"))
+    with small_filesystem(tmp_path / "disk", need // 2) as disk:
+        out = disk / "products" / "demo"
+        args = (inp["registration"], inp["geolocation"], scene["demo_hdr"], out / "cube.json", {},
+                None, "demo")  # fmt: skip
+        with pytest.raises(GeoregError) as e:
+            make_cube(*args)
+        msg = str(e.value)
+        assert "\n" not in msg and str(out) in msg and "no space left" in msg.lower(), msg
+        assert _files(disk) == [], _files(disk)  # no partial output, no temporary
+        subprocess.run(["mount", "-o", f"remount,size={need * 3}", "tmpfs", str(disk)], check=True)
+        m = make_cube(*args)
+        assert _files(out) == ["cube.bsq", "cube.hdr", "cube.json", "cube.tif"]
+        assert np.array_equal(_read(out / "cube.tif"), _read(run["out"] / "cube.tif"))
+        assert m["cube"]["bands"] == run["cube_m"]["cube"]["bands"]

@@ -14,6 +14,7 @@ import subprocess
 import tracemalloc
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import rasterio
@@ -268,3 +269,71 @@ def test_killed_writer_leaves_only_a_hidden_temporary_that_the_next_write_remove
     write_text(tmp_path / "grid.json", "{}\n")
     assert not stale.exists() and alive.exists()
     assert (tmp_path / "grid.json").read_text() == "{}\n"
+
+
+# ---------------------------------------------------------------- faults (issue 30)
+
+
+@pytest.mark.parametrize("where", [0.01, 0.2, 0.5, 0.9, -4])
+def test_laz_truncated_anywhere_is_named_truncated_before_the_run(tmp_path, where):
+    """A LAZ cut in its CRS records, in the middle of its points or in its chunk table (the last
+    bytes): the header check (before any rule) says truncated, never "no CRS"."""
+    from georeg.map.lidar import scan
+    from georeg.register.inputs import check_inputs
+
+    good = make_las(tmp_path / "good.laz", scene_points(density=1.0))
+    data = good.read_bytes()
+    bad = tmp_path / "cut.laz"
+    bad.write_bytes(data[: int(len(data) * where) if where > 0 else len(data) + where])
+    with pytest.raises(InputError) as e:
+        scan(bad)
+    clear_error(e, bad, "truncated", f"{bad.stat().st_size} bytes")
+    ortho = make_ortho(tmp_path / "ortho.tif")
+    problems = check_inputs({"map": {"orthophoto": str(ortho), "lidar": [str(bad)]}})
+    assert len(problems) == 1 and str(bad) in problems[0] and "truncated" in problems[0], problems
+    scan(good)  # the whole file is fine
+
+
+def _jpeg(path: Path, keep: float = 1.0) -> Path:
+    rng = np.random.default_rng(5)
+    img = cv2.GaussianBlur(rng.integers(0, 255, (240, 320, 3), dtype=np.uint8), (0, 0), 2)
+    data = cv2.imencode(".jpg", img)[1].tobytes()
+    path.write_bytes(data[: int(len(data) * keep)])
+    return path
+
+
+def test_truncated_jpeg_frame_is_refused_naming_it(tmp_path):
+    """A JPEG cut short decodes in OpenCV (grey bottom, a libjpeg warning only): it must be an
+    error naming the file, at the input check before the run and where the frame is read."""
+    from georeg.frames.localize import check_frame
+    from georeg.register.inputs import check_inputs
+
+    good, cut = _jpeg(tmp_path / "good.jpg"), _jpeg(tmp_path / "cut frame.jpg", 0.6)
+    assert check_frame(good).shape == (240, 320, 3)
+    with pytest.raises(InputError) as e:
+        check_frame(cut)
+    clear_error(e, cut, "truncated")
+    ortho = make_ortho(tmp_path / "ortho.tif")
+    cfg = {"map": {"orthophoto": str(ortho)}, "frames": {"f": {"images": [str(good), str(cut)]}}}
+    problems = check_inputs(cfg)
+    assert len(problems) == 1 and str(cut) in problems[0] and "truncated" in problems[0], problems
+
+
+def test_all_nan_cube_is_refused_saying_nan_and_all_zero_cube_is_a_constant_query(tmp_path):
+    """An all-NaN float cube: one error naming it that says NaN (it used to point at the 'data
+    ignore value', which it has none of), nothing written. An all-zero cube is a valid, constant
+    query: its band is the one a constant cube gives (the workflow test of a constant query:
+    not_found with its reason, products not_found)."""
+    nan = write_envi(tmp_path / "nan", np.full((5, 30, 40), np.nan, np.float32), "bil", extra=WL)
+    with pytest.raises(InputError) as e:
+        _band(tmp_path, nan, "1200nm")
+    clear_error(e, nan, "no valid pixel", "NaN")
+    no_files(tmp_path / "out")
+    bands = {}
+    for name, value in (("zero", 0), ("flat", 500)):
+        hdr = write_envi(tmp_path / name, np.full((5, 30, 40), value, np.uint16), "bil", extra=WL)
+        write_query_band(str(hdr), "1200nm", 0.8, str(tmp_path / f"{name}.tif"),
+                         str(tmp_path / f"{name}.json"))  # fmt: skip
+        with rasterio.open(tmp_path / f"{name}.tif") as ds:
+            bands[name] = ds.read()
+    assert np.array_equal(bands["zero"], bands["flat"])

@@ -116,3 +116,37 @@ def test_video_of_another_place_is_not_found(small_map, tmp_path):
     assert len(poses) == n and all(p["status"] == "not_found" for p in poses)
     info = json.loads((tmp_path / "out" / "trajectory.json").read_text())
     assert info["reason"]
+
+
+def test_video_with_corrupt_last_frames_uses_the_good_ones_and_lists_the_bad(small_map, tmp_path):
+    """Issue 30: the last frames of the flight corrupt: the others are geo-referenced as usual,
+    the bad ones are in poses.json (status unreadable), the CSV and trajectory.json."""
+    from test_video_io import corrupt_video
+
+    from georeg.frames.localize import MapSources
+    from georeg.trajectory.pipeline import georeference_video
+
+    tmp, tdir, outs, truth = small_map
+    bad = tmp_path / "flight corrupt.mp4"
+    corrupt_video(tmp / "video" / "flight.mp4", bad, 0.9, 1.0)
+    it = truth[0]["intrinsics"]
+    fs = {"video": str(bad), "camera": {k: it[k] for k in ("fx", "fy", "cx", "cy", "dist")}}
+    maps = MapSources(tmp / "index", tdir / "ortho.tif", outs["dsm"], [])
+    out = tmp_path / "out"
+    poses = georeference_video(fs, maps, {"refine": {"enabled": False}}, {"seed": 3}, out, None,
+                               str(tmp / "video" / "truth.json"))  # fmt: skip
+    n = VIDEO["n_frames"]
+    assert [p["frame"] for p in poses] == list(range(n))
+    unreadable = [p["frame"] for p in poses if p["status"] == "unreadable"]
+    assert unreadable and min(unreadable) >= 0.8 * n, unreadable
+    assert unreadable == list(range(min(unreadable), n))  # the corrupt tail, not more
+    good = [p for p in poses if p["status"] != "unreadable"]
+    assert sum(p["status"] == "registered" for p in good) >= 0.95 * len(good)
+    info = json.loads((out / "trajectory.json").read_text())
+    assert [b["frame"] for b in info["unreadable_frames"]] == unreadable
+    assert info["frames"] == len(good)
+    on_disk = json.loads((out / "poses.json").read_text())
+    on_disk = on_disk["poses"] if isinstance(on_disk, dict) else on_disk
+    assert [p["status"] for p in on_disk] == [p["status"] for p in poses]
+    rows = (out / "trajectory.csv").read_text().splitlines()
+    assert len(rows) == n + 1 and sum(",unreadable" in r for r in rows) == len(unreadable)

@@ -91,3 +91,48 @@ def test_bad_images_name_the_file(tmp_path):
     _raises_naming(tmp_path / "d.png", lambda: FrameSource([tmp_path / "d.png"]), "not found")
     pattern = str(tmp_path / "none_*.png")
     _raises_naming(pattern, lambda: FrameSource(pattern), "no frame images")
+
+
+def _textured_video(path, n: int = 40, fps: float = 10.0):
+    """Frame i: a 320 x 240 crop of one textured image, shifted 4 px per frame (each frame is
+    told from the others by its content)."""
+    rng = np.random.default_rng(0)
+    base = cv2.GaussianBlur((rng.random((240, 480, 3)) * 255).astype(np.uint8), (0, 0), 3)
+    frames = [np.ascontiguousarray(base[:, 4 * i : 4 * i + 320]) for i in range(n)]
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (320, 240))
+    for f in frames:
+        vw.write(f)
+    vw.release()
+    return path, frames
+
+
+def corrupt_video(path, dst, start: float, stop: float) -> None:
+    """Overwrite the fraction [start, stop) of the video's frame data (the mdat box, before the
+    moov index at the end) with random bytes."""
+    data = path.read_bytes()
+    m0, m1 = data.find(b"mdat") + 4, data.find(b"moov") - 4
+    a, b = m0 + int((m1 - m0) * start), m0 + int((m1 - m0) * stop)
+    junk = np.random.default_rng(1).integers(0, 256, b - a, dtype=np.uint8).tobytes()
+    dst.write_bytes(data[:a] + junk + data[b:])
+
+
+@pytest.mark.parametrize("start,stop", [(0.4, 0.5), (0.75, 1.0)])
+def test_corrupt_frames_are_left_out_and_the_good_ones_read(tmp_path, start, stop):
+    """Corrupt frames in the middle or at the end: every decodable frame is yielded under its
+    true index (its content says which it is), the others are listed in ``unreadable``."""
+    path, frames = _textured_video(tmp_path / "clip.mp4")
+    bad = tmp_path / "bad.mp4"
+    corrupt_video(path, bad, start, stop)
+    src = FrameSource(bad)
+    got = {i: rgb for i, _, rgb in src}
+    assert src.unreadable and not set(got) & set(src.unreadable)
+    assert sorted([*got, *src.unreadable]) == list(range(40))
+    lo, hi = min(src.unreadable), max(src.unreadable)
+    assert 40 * start - 6 <= lo and hi <= 40 * stop + 12, src.unreadable
+    assert max(got) > hi or stop == 1.0  # frames after a corrupt stretch are read again
+    for i, rgb in got.items():  # each frame is the one its index says
+        err = [np.abs(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR).astype(int) - f).mean() for f in frames]
+        assert int(np.argmin(err)) == i, (i, int(np.argmin(err)))
+    # the intact video: nothing unreadable
+    src = FrameSource(path)
+    assert len(list(src)) == 40 and src.unreadable == []

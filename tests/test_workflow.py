@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -142,6 +143,44 @@ def test_changed_matching_parameter_reruns_registration_only(demo_run, tmp_path)
         "tile_words", "build_index",
     ):  # fmt: skip
         assert f"rule {rule}:" not in out and f"\n{rule} " not in out, rule
+
+
+
+@pytest.mark.slow
+def test_snakemake_report_without_cores_has_figures_and_captions(demo_run):
+    """`snakemake --report report.zip` as the Snakemake docs show it (no --cores) after a run:
+    the zip holds every report figure, and every figure's caption is in the report."""
+    import zipfile
+
+    proc = snakemake(demo_run, "--report", "report.zip", "--configfile", str(TEST_CONFIG))
+    assert proc.returncode == 0, (proc.stdout + proc.stderr)[-3000:]
+    with zipfile.ZipFile(demo_run / "report.zip") as z:
+        names = z.namelist()
+        text = "".join(z.read(n).decode("utf-8", "replace") for n in names
+                       if n.endswith((".html", ".js")))  # fmt: skip
+    figures = sorted((demo_run / "results/report/figures/demo").glob("*.png"))
+    assert figures and (demo_run / "results/map/overview.png").exists()
+    for fig in [*figures, demo_run / "results/map/overview.png"]:
+        assert any(n.endswith(fig.name) for n in names), (fig.name, names[:20])
+    for rst in ("overview", "query_figures", "index_html", "summary"):
+        caption = (REPO / "workflow" / "report" / f"{rst}.rst").read_text()
+        assert f'"caption": "<p>{" ".join(caption.split()[:3])}' in text, rst  # rendered in
+    # every report() output of the workflow has a caption
+    calls = [c for f in sorted((REPO / "workflow" / "rules").glob("*.smk"))
+             for c in report_calls(f.read_text())]  # fmt: skip
+    assert len(calls) >= 4 and all("caption=" in c for c in calls), calls
+
+
+def report_calls(text: str) -> list[str]:
+    """The argument text of every ``report(...)`` call in a rule file."""
+    out = []
+    for m in re.finditer(r"\breport\(", text):
+        depth, k = 1, m.end()
+        while depth:
+            depth += {"(": 1, ")": -1}.get(text[k], 0)
+            k += 1
+        out.append(text[m.end() : k - 1])
+    return out
 
 
 def _write_ortho(path: Path, crs: str | None = "EPSG:32633") -> None:

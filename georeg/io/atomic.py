@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import glob
 import json
 import os
@@ -10,6 +11,8 @@ import shutil
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
+
+from georeg.io.errors import GeoregError, OutputError
 
 
 def _tmp_name(path: Path) -> Path:
@@ -53,13 +56,30 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     try:
         yield tmp
         os.replace(tmp, final)
-    except BaseException:
+    except BaseException as exc:
         if tmp.is_dir():
             shutil.rmtree(tmp, ignore_errors=True)
         else:
             with contextlib.suppress(FileNotFoundError):
                 tmp.unlink()
+        if disk_full(exc):
+            free = shutil.disk_usage(final.parent).free / 1e6
+            raise OutputError(final, f"no space left on the device while writing it ({free:.1f} "
+                              "MB free now)", "free space there, then run again") from exc  # fmt: skip
         raise
+
+
+def disk_full(exc: BaseException) -> bool:
+    """Whether ``exc`` (or what caused it) is ENOSPC: an OSError, or a GDAL / LAZ error whose
+    message says so. An error already naming its file (GeoregError) is not wrapped again."""
+    seen = 0
+    while exc is not None and seen < 8 and not isinstance(exc, GeoregError):
+        if isinstance(exc, OSError) and exc.errno == errno.ENOSPC:
+            return True
+        if "no space left on device" in str(exc).lower():
+            return True
+        exc, seen = exc.__cause__ or exc.__context__, seen + 1
+    return False
 
 
 def write_json(path: str | os.PathLike, data: Any) -> None:

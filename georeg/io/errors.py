@@ -9,8 +9,8 @@ class GeoregError(Exception):
     """Base class: an error the workflow reports as one line, without a traceback."""
 
 
-class InputError(GeoregError):
-    """A bad input file: names the file, says what is wrong and what to do."""
+class FileError(GeoregError):
+    """An error about one file: ``<file>: <what is wrong> (<what to do>)``."""
 
     def __init__(self, path: str | Path | None, problem: str, hint: str = "") -> None:
         self.path = str(path) if path is not None else None
@@ -23,3 +23,11 @@ class InputError(GeoregError):
 
 class ConfigError(GeoregError):
     """A configuration value that cannot work (beyond what the JSON schema checks)."""
+
+
+class InputError(FileError):
+    """A bad input file: names the file, says what is wrong and what to do."""
+
+
+class OutputError(FileError):
+    """An output that could not be written (e.g. the disk is full): names the file."""

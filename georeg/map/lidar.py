@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import laspy
+import lazrs
 import numpy as np
 import pyproj
 from pyproj import CRS as PCRS
@@ -52,6 +53,10 @@ class LasInfo:
     z_to_m: float  # metres per file z unit
     bounds: Bounds  # header bounds in the file CRS
     point_format: int
+
+
+#: the LASzip VLR (compression parameters) of a LAZ file
+_LASZIP_RECORD_ID = 22204
 
 
 def _fail(path: str | os.PathLike, exc: BaseException, what: str = "cannot read") -> InputError:
@@ -150,6 +155,7 @@ def scan(path: str | os.PathLike, lidar_crs: str | None = None) -> LasInfo:
         raise _fail(p, exc) from exc
     if header.point_count == 0:
         raise InputError(p, "point cloud is empty (0 points)", "remove it from map.lidar")
+    _check_length(p, header)
     horiz, vert, z_to_m = resolve_crs(p, header, lidar_crs)
     mins, maxs = header.mins, header.maxs
     return LasInfo(
@@ -161,6 +167,38 @@ def scan(path: str | os.PathLike, lidar_crs: str | None = None) -> LasInfo:
         (float(mins[0]), float(mins[1]), float(maxs[0]), float(maxs[1])),
         header.point_format.id,
     )
+
+
+def _check_length(path: Path, header: laspy.LasHeader) -> None:
+    """InputError when the file is shorter than its header says: cut in its records (VLRs), its
+    points, its LAZ chunk table or its extended records (a header read alone does not notice)."""
+    size = path.stat().st_size
+    start = int(header.offset_to_point_data)
+    need = start + int(header.point_count) * int(header.point_format.size)
+    what = f"its points need {need}"
+    if start > size:
+        need, what = start, f"its header and records need {start}"
+    elif header.are_points_compressed:
+        need, what = start, ""
+        try:  # LAZ: an 8-byte offset to the chunk table (at the end), then the chunks
+            vlr = next(v for v in header.vlrs if v.record_id == _LASZIP_RECORD_ID)
+            with open(path, "rb") as f:
+                f.seek(start)
+                table = lazrs.read_chunk_table(f, lazrs.LazVlr(vlr.record_data))
+            if table:
+                need = start + 8 + sum(int(n) for _, n in table)
+                what = f"its {len(table)} compressed chunk(s) end at byte {need}"
+        except StopIteration:
+            pass  # no LASzip record: laspy reports it when reading
+        except Exception:  # noqa: BLE001 (lazrs raises its own type on a short read)
+            need, what = size + 1, "its chunk table (the last bytes) is cut"
+    if int(getattr(header, "number_of_evlrs", 0) or 0) > 0:
+        evlr_end = int(header.start_of_first_evlr) + 60  # one EVLR header: 60 bytes
+        if evlr_end > need:
+            need, what = evlr_end, f"its extended records start at byte {evlr_end - 60}"
+    if size < need:
+        raise InputError(path, f"file is truncated: {size} bytes, {what}",
+                         "copy or export it again")  # fmt: skip
 
 
 def bounds_in(info: LasInfo, dst: PCRS) -> Bounds:

@@ -280,6 +280,9 @@ def write_query_band(
     cube = open_query(image)
     band, mask, info = select_band(cube, band_spec)
     if not mask.any():  # before writing anything: a failed step leaves no output
+        if not np.isfinite(band).any():
+            raise InputError(image, f"band {band_spec} has no valid pixel: every value is NaN",
+                             "the cube holds no data: check how it was exported")  # fmt: skip
         raise InputError(image, f"band {band_spec} has no valid pixel", "check 'data ignore value'")
     u8, stretch = stretch_uint8(band, mask, *percentiles)
     valid_fraction = float(mask.mean())

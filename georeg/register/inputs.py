@@ -21,7 +21,7 @@ import pyproj
 from georeg.io.errors import GeoregError
 from georeg.io.query import open_query
 from georeg.io.raster import open_raster
-from georeg.io.video import frame_images
+from georeg.io.video import frame_images, jpeg_cut_short
 from georeg.map import pdal_points
 from georeg.register.band import parse_band_spec, resolve_band
 
@@ -154,6 +154,8 @@ class _Checker:
                             w, h = im.size
                         if min(w, h) < 64:
                             self.add(f"{key}.images: {p}: {w} x {h} px, frames need >= 64 px")
+                        elif jpeg_cut_short(p):
+                            self.add(f"{key}.images: {p}: JPEG data is truncated")
                     except FileNotFoundError:
                         self.add(f"{key}.images: {p}: file not found")
                     except (UnidentifiedImageError, OSError) as exc:

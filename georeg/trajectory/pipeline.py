@@ -118,7 +118,7 @@ def georeference_video(frame_set: dict, maps: MapSources, frame_loc: dict, conf:
 
 def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict, out: Path,
                   work: Path, truth_path: str | None) -> list[dict]:  # fmt: skip
-    from georeg.io.video import FrameSource
+    from georeg.io.video import FrameSource, video_name
     from georeg.trajectory.icp import icp_refine
     from georeg.trajectory.keyframes import iter_keyframes
     from georeg.trajectory.sfm import run_sfm
@@ -155,12 +155,19 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
         key_idx.append(k.index)
         cv2.imwrite(str(kf_dir / _kf_name(k.index)), cv2.cvtColor(current["rgb"], cv2.COLOR_RGB2BGR))
     timings["keyframes_s"] = time.perf_counter() - t0
+    if src.unreadable:  # corrupt video frames: left out, listed in the outputs
+        info_bad = [{"frame": i, "image": video_name(src.video, i), "time_s": round(i / fps, 4)}
+                    for i in src.unreadable]  # fmt: skip
+    else:
+        info_bad = []
     log.info("%d keyframes of %d frames (%.1f s)", len(key_idx), len(names), timings["keyframes_s"])
 
     # 2. SfM
     t0 = time.perf_counter()
     cam_sfm = ({k: float(camera[k]) for k in ("fx", "fy", "cx", "cy")} if camera else None)
     info: dict[str, Any] = {"frames": len(names), "keyframes": len(key_idx)}
+    if info_bad:
+        info["unreadable_frames"] = info_bad
     try:
         model = run_sfm(kf_dir, work / "sfm", cam_sfm, {"seed": int(c["seed"]), **c["sfm"]})
     except ValueError as exc:  # no usable reconstruction: an honest not_found, not a crash
@@ -307,8 +314,8 @@ def _georeference(frame_set: dict, maps: MapSources, frame_loc: dict, conf: dict
     info["evaluation"] = _evaluate_set(poses, truth, model, kf_frame)
     info["single_frame"] = single_frame_summary(poses)
     points = (xyz_map, model.rgb, model.track_len, model.descriptors)
-    _write_outputs(out, poses, maps.crs_wkt, zg, points, info, int(c["look_every"]), timings, t_all)
-    return poses
+    return _write_outputs(out, poses, maps.crs_wkt, zg, points, info, int(c["look_every"]), timings,
+                          t_all)  # fmt: skip
 
 
 def single_frame_record(single: dict, seq: dict) -> dict[str, Any]:
@@ -377,10 +384,17 @@ def _evaluate_set(poses: list[dict], truth: dict, model, kf_frame: dict[str, int
 
 
 def _write_outputs(out: Path, poses: list[dict], crs: str, zg: float, points: tuple, info: dict,
-                   look_every: int, timings: dict, t_all: float) -> None:  # fmt: skip
-    """Trajectory CSV / GeoJSON / KML, the point map, trajectory.json, then poses.json."""
+                   look_every: int, timings: dict, t_all: float) -> list[dict]:  # fmt: skip
+    """Trajectory CSV / GeoJSON / KML, the point map, trajectory.json, then poses.json; the
+    frames in ``info["unreadable_frames"]`` join the poses as ``unreadable``. Returns the poses."""
     from georeg.trajectory.outputs import write_csv, write_geojson, write_kml, write_point_map
 
+    have = {p["frame"] for p in poses}
+    bad = [{**b, "status": "unreadable", "reason": "the video frame could not be decoded (corrupt "
+            "data, or a frame predicted from one)", "camera_center_xyz": None,
+            "R_world_to_cam": None, "inliers": 0, "reprojection_px": None}
+           for b in info.get("unreadable_frames") or [] if b["frame"] not in have]  # fmt: skip
+    poses = sorted([*poses, *bad], key=lambda p: p["frame"])
     write_csv(out / "trajectory.csv", poses, crs)
     write_geojson(out / "trajectory.geojson", poses, crs, zg, look_every)
     write_kml(out / "trajectory.kml", poses, crs, zg, look_every)
@@ -389,6 +403,7 @@ def _write_outputs(out: Path, poses: list[dict], crs: str, zg: float, points: tu
     info["timings_s"] = {k: round(v, 3) for k, v in timings.items()}
     write_json(out / "trajectory.json", info)
     write_poses(out / "poses.json", poses)
+    return poses
 
 
 def _write_not_found(out: Path, names: dict, fps: float, crs: str, info: dict, timings: dict,
@@ -399,5 +414,4 @@ def _write_not_found(out: Path, names: dict, fps: float, crs: str, info: dict, t
               "reprojection_px": None} for i, n in names.items()]  # fmt: skip
     (out / "overlays").mkdir(parents=True, exist_ok=True)
     empty = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 128)))
-    _write_outputs(out, poses, crs, 0.0, empty, info, 1, timings, t_all)
-    return poses
+    return _write_outputs(out, poses, crs, 0.0, empty, info, 1, timings, t_all)

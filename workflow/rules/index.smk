@@ -48,7 +48,9 @@ rule vocabulary:
         "logs/index/vocabulary.log",
     benchmark:
         "benchmarks/index/vocabulary.tsv"
-    threads: workflow.cores
+    # every core given with --cores; 1 when none is (`snakemake --report` has no --cores, and
+    # `workflow.cores` raises there)
+    threads: lambda wildcards: workflow.resource_settings.cores or 1
     resources:
         mem_mb=4000,
     script:

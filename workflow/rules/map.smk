@@ -98,7 +98,7 @@ rule map_overview:
         ortho="results/map/mosaic/ortho.vrt",
         dsm="results/map/mosaic/dsm.vrt",
     output:
-        report("results/map/overview.png", category="map"),
+        report("results/map/overview.png", caption="../report/overview.rst", category="map"),
     log:
         "logs/map/map_overview.log",
     benchmark:
