@@ -23,7 +23,7 @@ its half) must come out not found.
 
 Methods: single-region matchers on the whole map (``sift_plain``, ``paper``, ``vote_*``), the
 workflow's registration stages on plain map arrays (``wf_*``: georeg.register.fuse.register_query
-with config/config.yaml's ``register`` section), the dense CFOG search (``dense``) and both.
+with config/config.yaml's ``register`` section).
 Outcome per query: success = accepted with median error <= 5 map pixels; false accept = accepted
 with a larger error, or any acceptance of an unrelated pair; missed = not accepted. Per half:
 registered, false accepts, unrelated accepted, median error, median p90 and max error over the
@@ -322,19 +322,12 @@ METHODS: dict[str, dict[str, Any]] = {
     # since session 8; docs/BENCHMARKS.md "The null scan as a check of small feature fits")
     "wf_nocheck": {"pipeline": {"small": {"null_test": {"check": False}}}, "bands": "auto"},
     # accepted fits checked densely against the orthophoto in the fuse step
-    # (georeg.register.ortho_check, register.ortho_check): a dense affine refit replaces the fit
-    # when its CV is better and it verifies; a fit that does not verify becomes not found
+    # (georeg.register.ortho_check, register.ortho_check): a fit that does not verify becomes not
+    # found (the refit that replaced the fit was measured and removed)
     "wf_ortho_off": {"pipeline": {"ortho_check": {"mode": "off"}}, "bands": "auto"},
-    # the candidate measured (docs/BENCHMARKS.md "Dense check of accepted fits"): reject +
-    # replace; the default since is record without replacement (decisions and fits unchanged)
-    "wf_ortho": {"pipeline": {"ortho_check": {"mode": "reject", "replace": True}}, "bands": "auto"},
-    "wf_ortho_record": {"pipeline": {"ortho_check": {"mode": "record", "replace": False}},
-                        "bands": "auto"},  # fmt: skip
-    # the ortho check's refit replacement alone (decisions unchanged), then the refinement stage
-    "wf_replace_refined": {"pipeline": {"ortho_check": {"mode": "record", "replace": True}},
-                           "bands": "auto", "refine": {}},  # fmt: skip
-    "wf_small_searched": {"pipeline": {"small": {"enabled": True, "windows": "searched"}},
-                          "bands": "auto"},  # fmt: skip
+    # the candidate measured (docs/BENCHMARKS.md "Dense check of accepted fits") was reject +
+    # replace; the default is record (decisions and fits unchanged)
+    "wf_ortho": {"pipeline": {"ortho_check": {"mode": "reject"}}, "bands": "auto"},
     # the same with the ranking before the Hough vote on plain arrays (register.index.rank:
     # tiles, which without an index means 1-NN votes of the query descriptors on footprint cells)
     # the workflow default followed by the workflow's refinement stage (rule refine_registration:
@@ -378,13 +371,6 @@ METHODS: dict[str, dict[str, Any]] = {
     # one band chosen by wavelength (the nearest the scene has): which SWIR band alone
     "wf_band_1600nm": {"pipeline": {}, "bands": "1600nm"},
     "wf_band_2200nm": {"pipeline": {}, "bands": "2200nm"},
-    # area-based (georeg.register.dense, config register.dense; off in the workflow by default):
-    # CFOG channels correlated by FFT over 10 deg rotations on the whole map, the peak's
-    # similarity refined by a guided feature re-match, decided by the NFA (alone, and as the
-    # fallback of the workflow's stages when they find nothing)
-    "dense": {"dense": {}},
-    "wf_dense": {"pipeline": {}, "dense": {}},
-    "wf_dense_2bands": {"pipeline": {}, "dense": {}, "bands": 2},
     # the paper: one band brought to the map's GSD, SIFT/RootSIFT, ratio 0.7, Nt = 100
     "paper": {},
     "paper_all_matches": {"max_matches": 0},
@@ -503,10 +489,8 @@ def run_refine(q: Query, sc_map: Scene, H: np.ndarray, spec: dict[str, Any]) -> 
         band = band[0]
     x, y, info = refine(band, H, map_image(sc_map), conf)
     gf = info.get("global_fit") or {}
-    df = info.get("direct_fit") or {}
     return {"xy": (x, y), "refine_model": info["model"],
-            "global_fit": gf.get("accepted"), "global_fit_reason": gf.get("reason"),
-            "direct_fit": df.get("accepted"), "direct_fit_reason": df.get("reason")}  # fmt: skip
+            "global_fit": gf.get("accepted"), "global_fit_reason": gf.get("reason")}  # fmt: skip
 
 
 def plain_window_reader(sc: Scene) -> Any:
@@ -553,7 +537,6 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
     extra["null_check"] = nk.get("outcome")
     oc = res.get("ortho_check") or {}
     extra["ortho"] = oc.get("outcome")
-    extra["ortho_replaced"] = oc.get("replaced")
     if spec.get("refine") is not None and res["status"] == "registered":
         extra.update(run_refine(q, sc_map, np.array(res["homography"]), spec))
     return {
@@ -571,44 +554,7 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
     }
 
 
-def run_dense(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict[str, Any]:
-    """georeg.register.dense.dense_register with the whole map as the one window."""
-    from georeg.register.dense import dense_register
-    from georeg.register.search import MapSource, query_features
-
-    t0 = time.perf_counter()
-    conf = _deep(workflow_register_conf(), {"dense": spec["dense"]})
-    fgsd = sc_map.map_gsd
-    nb = int(spec.get("bands", 1))
-    u8 = np.stack(list(q.bands.values())[:nb]) if nb > 1 else next(iter(q.bands.values()))
-    mxy, mdesc, _, _ = map_features(sc_map, fgsd, merged_conf(FEATURES))
-    src = MapSource(mxy, mdesc, fgsd)
-    qf = query_features(u8, (0, u8.shape[-2]), [q.gsd / fgsd], None)
-    A = np.diag([fgsd, -fgsd, 1.0])
-    r = dense_register(u8, qf, q.gsd, sc_map.map_gray, A, src, conf, seed)
-    return {
-        "matches": r.get("matches") or 0,
-        "inliers": r.get("inliers") or 0,
-        "accepted": bool(r["accepted"]),
-        "log10_nfa": r.get("log10_nfa"),
-        "H": None if r.get("homography") is None else np.array(r["homography"]),
-        "dense_z": r.get("dense_z"),
-        "dense_log10_nfa": r.get("dense_log10_nfa"),
-        "dense_ratio": r.get("dense_peak_ratio"),
-        "seconds": time.perf_counter() - t0,
-    }
-
-
 def run_method(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict[str, Any]:
-    if "pipeline" in spec and "dense" in spec:
-        res = run_pipeline(q, sc_map, spec, seed)
-        if not res["accepted"]:
-            d = run_dense(q, sc_map, spec, seed)
-            d["seconds"] += res["seconds"]
-            return {**res, **d}
-        return res
-    if "dense" in spec:
-        return run_dense(q, sc_map, spec, seed)
     if "pipeline" in spec:
         return run_pipeline(q, sc_map, spec, seed)
     t0 = time.perf_counter()
@@ -896,12 +842,11 @@ def main(argv: list[str] | None = None) -> int:
                    "features": res.get("features"), "part_side": res.get("part_side"),
                    "size_px": next(iter(q.bands.values())).shape[0],
                    "log10_nfa": res.get("log10_nfa"), "seconds": res["seconds"],
-                   "dense_z": res.get("dense_z"), "dense_log10_nfa": res.get("dense_log10_nfa"),
-                   "dense_ratio": res.get("dense_ratio"), "refine_model": res.get("refine_model"),
+                   "refine_model": res.get("refine_model"),
                    "global_fit": res.get("global_fit"), "small_nfa": res.get("small_nfa"),
                    "null_nfa": res.get("null_nfa"), "null_accepted": res.get("null_accepted"),
                    "global_fit_reason": res.get("global_fit_reason"),
-                   "ortho": res.get("ortho"), "ortho_replaced": res.get("ortho_replaced"),
+                   "ortho": res.get("ortho"),
                    "null_check": res.get("null_check")}  # fmt: skip
             rows[name].append(rec)
             if a.v:
@@ -921,7 +866,7 @@ def main(argv: list[str] | None = None) -> int:
                          else f" null check {res['null_check']}")
                       + ("" if res.get("ortho") is None
                          else f" ortho {res['ortho']}"
-                         + (" (refit)" if res.get("ortho_replaced") else "")), flush=True)  # fmt: skip
+), flush=True)  # fmt: skip
     print(f"\n{len(queries)} queries and unrelated pairs, seed {a.seed}; halves by city: "
           f"tuning {', '.join(TUNING)}; checking {', '.join(CHECKING)}")  # fmt: skip
     print("| method | half | registered | false accepts | unrelated accepted | median err px "

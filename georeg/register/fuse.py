@@ -207,65 +207,6 @@ def whole_query_fallback(
     return [*parts, whole], plan
 
 
-def candidate_windows(parts: list[dict[str, Any]], n: int) -> list[tuple[float, ...]]:
-    """The first ``n`` distinct candidate regions the searches tried: the whole query's searches
-    first, then the parts', each in the order tried; regions overlapping a kept one by more
-    than half of the smaller are dropped."""
-    order = sorted(parts, key=lambda p: (not p.get("whole_query"), p["part"]))
-    out: list[tuple[float, ...]] = []
-    for p in order:
-        for c in p.get("candidates") or []:
-            b = tuple(float(v) for v in c["bounds"])
-            if any(_overlap(b, o) > 0.5 for o in out):
-                continue
-            out.append(b)
-            if len(out) >= n:
-                return out
-    return out
-
-
-def _overlap(a: tuple[float, ...], b: tuple[float, ...]) -> float:
-    ix = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    iy = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    small = min((a[2] - a[0]) * (a[3] - a[1]), (b[2] - b[0]) * (b[3] - b[1]))
-    return ix * iy / small if small > 0 else 0.0
-
-
-def dense_fallback(
-    u8: np.ndarray,
-    full: QueryFeatures,
-    source: MapSource,
-    parts: list[dict[str, Any]],
-    conf: dict[str, Any],
-    gsd_m: float | None,
-    read_window: Any,
-    seed: int = 0,
-) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """When no search accepted anything: the dense CFOG search (georeg.register.dense) in the
-    first ``register.dense.max_windows`` candidate regions, each followed by a guided feature
-    re-match; the first accepted one becomes one more (whole-query) part.
-
-    ``read_window(bounds)`` -> (float gray window, NaN = nodata; 3 x 3 window pixel centre ->
-    map x, y) or None. Returns the parts and a record of what was tried.
-    """
-    from georeg.register.dense import dense_conf, dense_register, window_u8
-
-    dc = dense_conf(conf)
-    if any(p.get("accepted") for p in parts):
-        return parts, {"ran": False, "reason": "a search was accepted"}
-    if not dc["enabled"] or not gsd_m:
-        why = "disabled" if not dc["enabled"] else "the query GSD is unknown"
-        return parts, {"ran": False, "reason": why}
-    windows = candidate_windows(parts, int(dc["max_windows"]))
-
-    def register(k: int, gray: np.ndarray, A: np.ndarray, b: tuple[float, ...]) -> dict[str, Any]:
-        return dense_register(u8, full, gsd_m, window_u8(gray), A, source, conf, seed + k,
-                              len(windows))  # fmt: skip
-
-    return first_accepted_window(windows, read_window, register, parts, full.height, "dense",
-                                 ("angle_deg", "dense_z", "dense_log10_nfa"))  # fmt: skip
-
-
 def first_accepted_window(windows: list[tuple[float, ...]], read_window: Any, register: Any,
                           parts: list[dict[str, Any]], height: int, flag: str,
                           keys: tuple[str, ...] = (), grow: float = 0.0,
@@ -312,8 +253,6 @@ def register_query(
     parts, split = whole_query_fallback(full, source, parts, conf, gsd_m, seed)
     if read_window is not None:
         parts, split["small"] = small_fallback(u8, full, source, parts, conf, gsd_m, read_window,
-                                               seed)  # fmt: skip
-        parts, split["dense"] = dense_fallback(u8, full, source, parts, conf, gsd_m, read_window,
                                                seed)  # fmt: skip
     fused = fuse(full, source, parts, conf, gsd_m, seed)
     fused, nrec = null_check(u8, fused, source, conf, gsd_m, read_window, split.get("small"))
@@ -373,10 +312,6 @@ def run_fuse_parts(
     if split["small"].get("ran"):
         timings["small_search"] = time.perf_counter() - t1
     t1 = time.perf_counter()
-    parts, split["dense"] = dense_fallback(u8, full, source, parts, reg_conf, gsd, reader, seed)
-    if split["dense"].get("ran"):
-        timings["dense_search"] = time.perf_counter() - t1
-    t1 = time.perf_counter()
     fused = fuse(full, source, parts, reg_conf, gsd, seed)
     timings["fuse_match"] = time.perf_counter() - t1
     t1 = time.perf_counter()
@@ -427,7 +362,6 @@ def run_fuse_parts(
                 "part": p["part"],
                 "rows": p["rows"],
                 "whole_query": p["rows"] == [0, h],
-                "dense": bool(p.get("dense")),
                 "small": bool(p.get("small")),
                 "skipped": bool(p.get("skipped")),
                 "accepted": p["accepted"],

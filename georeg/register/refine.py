@@ -22,10 +22,7 @@ pixel along and across track. This module corrects it with tie points measured a
    ``auto_min_gain``). Fewer than ``min_tie_points`` accepted points: the homography is kept.
    Before step 3 (``global_fit``, georeg.register.densefit, issue 20) the global map itself is
    refitted to the tie points of the whole footprint and kept only if its blocked CV beats the
-   feature homography; then (``direct_fit``, off by default, georeg.register.directfit) a similarity
-   warp is solved from every pixel of footprints up to ``max_pixels`` (small queries have too
-   few tie-point windows), kept if the correlation rises and two interleaved halves of the
-   pixels agree on it; a local model then acts only where its own blocked CV beats the global
+   feature homography; a local model then acts only where its own blocked CV beats the global
    fit (``cv_guard``) and tie points support it (``support_*``), and ``auto`` needs a gain of
    ``auto_min_gain_px`` too: the refinement never extrapolates a local model.
 4. Window averaging attenuates fast jitter, so steps 1-3 are iterated (``iterations``): each pass
@@ -79,7 +76,6 @@ DEFAULTS: dict[str, Any] = {
     "cv_guard_full_gain": 0.05,
     "pooled_bands": True,  # tie points from the CFOG of every pooled query band (else the primary)
     "global_fit": {},  # georeg.register.densefit settings (enabled by default)
-    "direct_fit": {},  # georeg.register.directfit settings (off by default)
 }
 MODELS = ("per_line", "polynomial", "tps", "homography")
 
@@ -594,15 +590,6 @@ def refine(
         # the global homography refitted to dense tie points over the whole footprint first:
         # the local model then corrects only what no homography can, relative to that fit
         H, global_fit = dense_fit(band, H, map_image, gconf, c)
-    direct: dict[str, Any] | None = None
-    dconf = dict(c.get("direct_fit") or {})
-    if dconf.get("enabled", False) and (
-        dconf.get("when", "always") == "always" or not (global_fit or {}).get("accepted")
-    ):
-        from georeg.register.directfit import direct_fit
-
-        # every pixel of the footprint, not only the tie-point windows (small queries have few)
-        H, direct = direct_fit(band, H, map_image, dconf, c)
     qf, qvalid = query_cfog(band, int(c["orientations"]), float(c["cfog_sigma_px"]))
     win, step, search = int(c["window_px"]), int(c["grid_step_px"]), int(c["search_px"])
     centres = grid_points(w, h, step, win)  # window centres: where the shifts are measured
@@ -615,8 +602,7 @@ def refine(
     model: Model = Model()
     D = np.zeros((h, w, 2))
     info: dict[str, Any] = {"requested_model": requested, "grid_points": int(len(pts)),
-                            "global_fit": global_fit or {"enabled": False},
-                            "direct_fit": direct or {"enabled": False}}  # fmt: skip
+                            "global_fit": global_fit or {"enabled": False}}  # fmt: skip
     history: list[dict[str, Any]] = []
     before = None
     final = None

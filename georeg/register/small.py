@@ -38,7 +38,6 @@ SMALL_DEFAULTS: dict[str, Any] = {
     "enabled": True,
     "max_side_px": 160,
     "max_windows": 3,
-    "windows": "hough",
     "step_deg": 10.0,
     "max_side": 96,
     "peaks": 1,
@@ -275,17 +274,14 @@ def small_windows(
     conf: dict[str, Any],
     gsd_m: float,
 ) -> list[tuple[float, ...]]:
-    """The first ``max_windows`` candidate regions: ``windows: hough`` ranks them again with the
-    dense query features ``qf`` (the index's Hough vote, ``register.index``; more query features
-    put the true place in the first three regions more often: 30 vs 26 of the 48 queries of the
-    tuning cities' small subset); ``searched``: the regions the searches tried."""
-    from georeg.register.fuse import candidate_windows
+    """The first ``max_windows`` candidate regions, ranked again with the dense query features
+    ``qf`` (the index's Hough vote, ``register.index``; more query features put the true place in
+    the first three regions more often than the regions the searches tried: 30 vs 26 of the 48
+    queries of the tuning cities' small subset)."""
     from georeg.register.search import footprint_diagonal_m, index_candidates
 
     sc = small_conf(conf)
     n = int(sc["max_windows"])
-    if str(sc.get("windows", "hough")) == "searched":
-        return candidate_windows(parts, n)
     ic = {**(conf.get("index") or {}), "top_candidates": n}
     diag = footprint_diagonal_m(qf, source.gsd_m, gsd_m)
     return [tuple(float(v) for v in b) for b, _ in index_candidates(qf, source, diag, ic)][:n]
