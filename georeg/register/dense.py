@@ -1,7 +1,7 @@
 """Area-based cross-spectral search: CFOG channels correlated by FFT over rotations.
 
 The query (brought to the map's feature GSD) and a map window are turned into oriented-gradient
-channels (georeg.register.refine.cfog, which do not depend on which band made them), both are
+channels (georeg.register.tiepoints.cfog, which do not depend on which band made them), both are
 shrunk so that the query is at most ``max_side`` pixels, and the query is correlated with the
 window by FFT at every rotation step. The peak is judged against the distribution of every other
 rotation and offset: a robust z-score (median / MAD of all scores) turned into an a-contrario
@@ -18,7 +18,7 @@ import numpy as np
 import scipy.fft as sfft
 from scipy.stats import norm
 
-from georeg.register.refine import cfog
+from georeg.register.tiepoints import cfog
 
 
 @dataclass

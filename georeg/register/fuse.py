@@ -398,7 +398,7 @@ def run_fuse_parts(
 def ortho_window_reader(ortho: str) -> Any:
     """bounds -> (gray window, NaN = nodata; 3 x 3 window pixel centre -> map x, y) or None."""
     from georeg.io.errors import InputError
-    from georeg.register.refine import read_map_gray
+    from georeg.register.tiepoints import read_map_gray
 
     def read(b: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray] | None:
         try:

@@ -5,8 +5,8 @@ can pass the a-contrario and plausibility tests at the right place yet be distor
 fit through 6 inliers, 10-25 map px off towards the footprint's edges). Here the orthophoto is
 rendered into the query geometry through H at about one map pixel per working pixel (the query
 resampled by its ground pixel size, at most ``max_side`` pixels across), both images become
-CFOG structure channels (:func:`georeg.register.refine.cfog`, blind to contrast reversals) and
-tie points are measured on a grid (:func:`georeg.register.refine.measure_shifts`). A tie point
+CFOG structure channels (:func:`georeg.register.tiepoints.cfog`, blind to contrast reversals) and
+tie points are measured on a grid (:func:`georeg.register.tiepoints.measure_shifts`). A tie point
 *supports* H when its peak NCC is at least ``min_score``, its peak is not on the search border
 and its shift is within ``support_px`` working px of zero, i.e. where H puts it.
 
@@ -44,7 +44,7 @@ import numpy as np
 
 from georeg.register.dense import _shrink
 from georeg.register.geolocation import apply_h, ground_px
-from georeg.register.refine import MapImage, cfog, grid_points, measure_shifts
+from georeg.register.tiepoints import MapImage, cfog, grid_points, measure_shifts
 
 log = logging.getLogger(__name__)
 

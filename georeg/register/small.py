@@ -29,7 +29,7 @@ import numpy as np
 
 from georeg.index.features import detect_and_describe, merged_conf, resample
 from georeg.register import acceptance, crossspectral, matching
-from georeg.register.dense_null import null_conf
+from georeg.register.null_scan import null_conf
 from georeg.register.search import MapSource, QueryFeatures, query_features
 
 log = logging.getLogger(__name__)
@@ -341,17 +341,16 @@ def null_register(
     read_window: Any,
 ) -> dict[str, Any]:
     """The small query's CFOG peak over the whole map, decided by the calibrated block-maxima
-    null (``georeg.register.dense_null``, ``register.small.null_test``); an accepted peak becomes a
-    similarity at the known GSD refined by ``dense_null.fine_pose`` and checked for
+    null (``georeg.register.null_scan``, ``register.small.null_test``); an accepted peak becomes a
+    similarity at the known GSD refined by ``null_scan.fine_pose`` and checked for
     plausibility. A record like a search part's (``accepted``, ``homography``, ``log10_nfa``
     = the CFOG peak's, ``inliers`` 0) with the evidence (statistic, p-value, null size).
 
     The map is read and correlated at once up to ``max_map_px`` correlation px (``scan:
-    whole``), tile by tile above it (``georeg.register.dense_tiled``, ``tile_px``; ``scan:
+    whole``), tile by tile above it (``null_scan.tiled_scan``, ``tile_px``; ``scan:
     tiled``, ``tiles``) up to ``max_tiled_map_px``, and not at all beyond (``reason``)."""
     from georeg.register.dense import window_u8
-    from georeg.register.dense_null import fine_pose, scan
-    from georeg.register.dense_tiled import tiled_scan
+    from georeg.register.null_scan import fine_pose, scan, tiled_scan
 
     t0 = time.perf_counter()
     sc = small_conf(conf)
@@ -378,7 +377,7 @@ def null_register(
     elif est <= float(nc["max_map_px"]):
         rec.update(reason="no orthophoto", seconds=time.perf_counter() - t0)
         return rec
-    if got is None:  # larger than one FFT: tile by tile (dense_tiled), up to max_tiled_map_px
+    if got is None:  # larger than one FFT: tile by tile (null_scan.tiled_scan), up to max_tiled_map_px
         try:
             r = tiled_scan(q0, float(q_gsd), b, read_window, source.gsd_m, float(sc["step_deg"]),
                            int(sc["max_side"]), int(nc["block_px"]), float(nc["exclude_px"]),
