@@ -54,7 +54,7 @@ SHARED = ROOT.parent / "shared" / "data"
 DATES = SHARED / "swir_dates"
 
 from georeg.index.features import detect_and_describe, merged_conf, resample  # noqa: E402
-from georeg.register import acceptance, crossspectral, matching  # noqa: E402
+from georeg.register import acceptance, matching  # noqa: E402
 
 SUCCESS_PX = 5.0
 TINY_SIDES = (40, 80)  # --set tiny: query px a side, like the checking half's smallest crops
@@ -569,14 +569,14 @@ def run_method(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict
         band = gradmag(q.bands[b]) if structure == "gradmag" else q.bands[b]
         xy, d, r, ang, size = query_feats(band, q.gsd / fgsd, qconf)
         if spec.get("polarity"):
-            xy, d, r = crossspectral.add_polarity(xy, d, r)
+            xy, d, r = matching.add_polarity(xy, d, r)
             ang, size = np.r_[ang, (ang + 180.0) % 360.0], np.r_[size, size]
         xs.append(xy), ds.append(d), rs.append(r), angs.append(ang), sizes.append(size)
     qxy, qd, qr = np.concatenate(xs), np.concatenate(ds), np.concatenate(rs)
     qang, qsize = np.concatenate(angs), np.concatenate(sizes)
     knn = matching.knn2(mdesc)
     if spec.get("vote"):
-        hyps = crossspectral.rotation_hypotheses(
+        hyps = matching.rotation_hypotheses(
             qxy, qd, qang, qsize, mxy, mang, msize, knn, spec["vote"]
         )
     else:
@@ -606,7 +606,7 @@ def run_method(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict
         # guided re-match around the best hypothesis (accepted or not), refit, decide again
         fit0 = best[2]
         radius = float(spec["guided"]) * fgsd
-        gm = crossspectral.guided_matches(qxy, qd, fit0.H, mxy, mdesc, radius, 0.8, knn)
+        gm = matching.guided_matches(qxy, qd, fit0.H, mxy, mdesc, radius, 0.8, knn)
         if len(gm) >= 4:
             fit = matching.fit_homography(gm.q_xy, gm.m_xy, fgsd, REG["ransac"], seed)
             if fit.H is not None:

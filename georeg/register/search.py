@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from georeg.index.features import dequantize, detect_and_describe, resample
-from georeg.register import acceptance, crossspectral, matching, model_choice
+from georeg.register import acceptance, matching, model_choice
 
 log = logging.getLogger(__name__)
 
@@ -424,31 +424,31 @@ def _hypotheses(
 
     ``paper``: one set, the paper's ratio test (``register.ratio``, stop at Nt). ``vote``:
     both contrast polarities of the query, a loose ratio, keypoint-size agreement and
-    the strongest rotation peaks (georeg.register.crossspectral.rotation_hypotheses); falls back to
+    the strongest rotation peaks (georeg.register.matching.rotation_hypotheses); falls back to
     ``paper`` when the map or the query has no keypoint geometry. With ``guide`` = (H, radius)
     (the fuse stage's re-match around an accepted part), ``vote`` matches every query feature
     among the map features within the radius of H's prediction, with the ratio test among
-    those local candidates (``guided_ratio``, 0.8; georeg.register.crossspectral.guided_matches).
+    those local candidates (``guided_ratio``, 0.8; georeg.register.matching.guided_matches).
     """
-    mc = crossspectral.matcher_conf(conf)
+    mc = matching.matcher_conf(conf)
     method = str(mc.get("method", "paper"))
     if method not in ("paper", "vote"):
         raise ValueError(f"unknown register.matcher.method {method!r} (vote | paper)")
     q_xy, q_desc, q_resp, q_ang, q_size = qf.xy, qf.desc, qf.response, qf.angle, qf.size
     if mc.get("polarity") == "both" and len(qf):
-        q_xy, q_desc, q_resp = crossspectral.add_polarity(q_xy, q_desc, q_resp)
+        q_xy, q_desc, q_resp = matching.add_polarity(q_xy, q_desc, q_resp)
         if q_ang is not None and q_size is not None:
             q_ang = np.r_[q_ang, (q_ang + 180.0) % 360.0]
             q_size = np.r_[q_size, q_size]
     if method == "vote" and guide is not None and mdesc is not None:
-        gm = crossspectral.guided_matches(
+        gm = matching.guided_matches(
             q_xy, q_desc, guide[0], mxy, mdesc, guide[1], float(mc.get("guided_ratio", 0.8)), knn
         )
         return [(gm, 1, "guided")]
     geom = source.geometry(ids) if method == "vote" else None
     if method == "vote" and geom is not None and q_ang is not None and q_size is not None:
         m_ang, m_scale = geom
-        hyps = crossspectral.rotation_hypotheses(
+        hyps = matching.rotation_hypotheses(
             q_xy, q_desc, q_ang, q_size, mxy, m_ang, m_scale / source.gsd_m, knn, mc
         )
         if hyps:

@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from georeg.index.features import detect_and_describe, merged_conf, resample
-from georeg.register import acceptance, crossspectral, matching
+from georeg.register import acceptance, matching
 from georeg.register.null_scan import null_conf
 from georeg.register.search import MapSource, QueryFeatures, query_features
 
@@ -164,7 +164,7 @@ def _guided_rematch(
     best = None
     for k, radius_px in enumerate(float(v) for v in sc["radii_px"]):
         disc = math.pi * radius_px**2
-        gm = crossspectral.guided_matches(q_xy, q_desc, H, mxy, mdesc, radius_px * g,
+        gm = matching.guided_matches(q_xy, q_desc, H, mxy, mdesc, radius_px * g,
                                           float(sc["ratio"]), knn)  # fmt: skip
         if len(gm) < 4:
             break
@@ -239,7 +239,7 @@ def small_register(
         return rec
     mxy, mdesc = np.asarray(src.xy, np.float64), np.asarray(src.desc, np.float32)
     knn = matching.knn2(mdesc)
-    q_xy, q_desc, _ = crossspectral.add_polarity(qf.xy, qf.desc, qf.response)
+    q_xy, q_desc, _ = matching.add_polarity(qf.xy, qf.desc, qf.response)
     win_area = places_px * (win_px / g) ** 2  # where the query centre may be, feature px
     n_rot = int(round(360.0 / float(sc["step_deg"])))
     hyps = [(r.S, r.angle_deg, r.score)] + list(r.others or [])
