@@ -30,7 +30,7 @@ import numpy as np
 from georeg.index.features import detect_and_describe, merged_conf, resample
 from georeg.register import acceptance, matching
 from georeg.register.null_scan import null_conf
-from georeg.register.search import MapSource, QueryFeatures, query_features
+from georeg.register.search import MapSource, MapView, QueryFeatures, QueryInput, query_features
 
 log = logging.getLogger(__name__)
 
@@ -270,7 +270,6 @@ def small_register(
 def small_windows(
     qf: QueryFeatures,
     source: MapSource,
-    parts: list[dict[str, Any]],
     conf: dict[str, Any],
     gsd_m: float,
 ) -> list[tuple[float, ...]]:
@@ -287,49 +286,92 @@ def small_windows(
     return [tuple(float(v) for v in b) for b, _ in index_candidates(qf, source, diag, ic)][:n]
 
 
-def small_fallback(
-    u8: np.ndarray,
-    full: QueryFeatures,
-    source: MapSource,
-    parts: list[dict[str, Any]],
-    conf: dict[str, Any],
-    gsd_m: float | None,
-    read_window: Any,
-    seed: int = 0,
-) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """When no search accepted a small query (``register.small``): ``small_register`` in the
-    first ``max_windows`` candidate regions the searches tried; the first accepted one becomes
-    one more (whole-query) part. ``read_window(bounds)`` as ``fuse.dense_fallback``."""
-    from georeg.register.dense import window_u8
-    from georeg.register.fuse import first_accepted_window
+def first_accepted_window(windows: list[tuple[float, ...]], read_window: Any, register: Any,
+                          parts: list[dict[str, Any]], height: int, flag: str,
+                          keys: tuple[str, ...] = (), grow: float = 0.0,
+                          ) -> tuple[list[dict[str, Any]], dict[str, Any]]:  # fmt: skip
+    """Each window (grown by ``grow`` map units) read by ``read_window``, then ``register(k, gray,
+    A, bounds)``; the first accepted record becomes one more whole-query part, marked ``flag``.
+    Returns the parts and the record of the windows tried (their bounds, acceptance, inliers,
+    NFA, reason, seconds and ``keys``)."""
+    tried = []
+    for k, b in enumerate(windows):
+        got = read_window((b[0] - grow, b[1] - grow, b[2] + grow, b[3] + grow))
+        if got is None:
+            continue
+        rec = register(k, *got, b)
+        rec["bounds"] = [float(v) for v in b]
+        tried.append({k2: rec.get(k2) for k2 in ("bounds", "accepted", "inliers", "matches",
+                      "log10_nfa", *keys, "reason", "seconds")})  # fmt: skip
+        log.info("%s search in window %d: %s inliers, log10 NFA %s -> %s", flag, k,
+                 rec.get("inliers"), rec.get("log10_nfa"),
+                 "ACCEPT" if rec["accepted"] else rec.get("reason"))  # fmt: skip
+        if rec["accepted"]:
+            part = {**rec, "part": len(parts), "rows": [0, height], "whole_query": True,
+                    flag: True, "candidates_tried": k + 1, "candidates": []}  # fmt: skip
+            return [*parts, part], {"ran": True, "windows": tried, "accepted_window": k}
+    return parts, {"ran": True, "windows": tried, "accepted_window": None}
 
+
+def _why_not(u8: np.ndarray, conf: dict[str, Any], gsd_m: float | None,
+             read_window: Any) -> str | None:  # fmt: skip
+    """Why the small-query sources do not apply to this query (None: they do)."""
     sc = small_conf(conf)
     h, w = u8.shape[-2:]
-    if any(p.get("accepted") for p in parts):
-        return parts, {"ran": False, "reason": "a search was accepted"}
     if not applies(w, h, conf):
-        why = "disabled" if not sc["enabled"] else f"query side > {sc['max_side_px']} px"
-        return parts, {"ran": False, "reason": why}
+        return "disabled" if not sc["enabled"] else f"query side > {sc['max_side_px']} px"
     if not gsd_m or read_window is None:
-        return parts, {"ran": False, "reason": "no query GSD or no orthophoto"}
+        return "no query GSD or no orthophoto"
+    return None
+
+
+def window_source(
+    q: QueryInput, view: MapView, parts: list[dict[str, Any]], conf: dict[str, Any]
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Source ``small_windows`` (``register.small``): ``small_register`` in the first
+    ``max_windows`` candidate regions of the dense query features; the first accepted one
+    becomes one more (whole-query) part. ``read_window(bounds)`` -> (float gray window, NaN =
+    nodata; 3 x 3 window pixel centre -> map x, y) or None. Returns the parts and the record."""
+    from georeg.register.dense import window_u8
+
+    u8, gsd_m, seed, source, read_window = q.u8, q.gsd, q.seed, view.source, view.read_window
+    why = _why_not(u8, conf, gsd_m, read_window)
+    if why:
+        return parts, {"ran": False, "reason": why}
+    assert gsd_m is not None
+    sc = small_conf(conf)
+    h, w = u8.shape[-2:]
     fconf = dense_features_conf(source.features_conf, sc)
     qf = query_features(u8, (0, h), [gsd_m / source.gsd_m], fconf)
-    windows = small_windows(qf, source, parts, conf, gsd_m)
+    windows = small_windows(qf, source, conf, gsd_m)
     grow = 0.5 * math.hypot(w, h) * float(gsd_m)  # a centre in the region, the footprint around
 
     def register(k: int, gray: np.ndarray, A: np.ndarray, b: tuple[float, ...]) -> dict[str, Any]:
         return small_register(u8, gsd_m, window_u8(gray), A, source.gsd_m, conf,
                               source.features_conf, seed + k, len(windows), qf, b)  # fmt: skip
 
-    parts, rec = first_accepted_window(windows, read_window, register, parts, full.height,
-                                       "small", ("angle_deg", "dense_score", "peak"), grow)  # fmt: skip
-    if rec.get("accepted_window") is None and null_conf(sc)["enabled"]:
-        got = null_register(u8, gsd_m, source, conf, read_window)
-        rec["cfog_null"] = {k: v for k, v in got.items() if k not in ("homography",)}
-        if got["accepted"]:
-            part = {**got, "part": len(parts), "rows": [0, h], "whole_query": True,
-                    "small": True, "candidates_tried": len(windows) + 1, "candidates": []}  # fmt: skip
-            parts = [*parts, part]
+    return first_accepted_window(windows, read_window, register, parts, h, "small",
+                                 ("angle_deg", "dense_score", "peak"), grow)  # fmt: skip
+
+
+def null_source(
+    q: QueryInput, view: MapView, parts: list[dict[str, Any]], conf: dict[str, Any]
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Source ``cfog_null`` (``register.small.null_test``): the small query's CFOG peak over the
+    whole map (``null_register``); an accepted peak becomes one more (whole-query) part.
+    Returns the parts and the record."""
+    u8, gsd_m, source, read_window = q.u8, q.gsd, view.source, view.read_window
+    why = _why_not(u8, conf, gsd_m, read_window)
+    if why or not null_conf(small_conf(conf))["enabled"]:
+        return parts, {"ran": False, "reason": why or "disabled"}
+    assert gsd_m is not None
+    h = u8.shape[-2]
+    got = null_register(u8, gsd_m, source, conf, read_window)
+    rec = {"ran": True, **{k: v for k, v in got.items() if k not in ("homography",)}}
+    if got["accepted"]:
+        part = {**got, "part": len(parts), "rows": [0, h], "whole_query": True,
+                "small": True, "candidates_tried": 1, "candidates": []}  # fmt: skip
+        parts = [*parts, part]
     return parts, rec
 
 
