@@ -296,24 +296,9 @@ METHODS: dict[str, dict[str, Any]] = {
     "wf_small": {"pipeline": {"small": {"enabled": True}}, "bands": "auto"},  # dense Hough windows
     "wf_small_160": {"pipeline": {"small": {"enabled": True, "max_side_px": 160}},
                      "bands": "auto"},  # fmt: skip
-    # --set tiny candidates: several CFOG peaks per window, a lower SIFT contrast threshold,
-    # more windows (register.small.peaks, .features, .max_windows)
-    "wf_peaks3": {"pipeline": {"small": {"peaks": 3}}, "bands": "auto"},
-    "wf_peaks3_ct01": {"pipeline": {"small": {"peaks": 3, "features": {
-        "max_features_per_mpx": 0, "sift": {"contrast_threshold": 0.01}}}}, "bands": "auto"},
-    "wf_peaks3_w5": {"pipeline": {"small": {"peaks": 3, "max_windows": 5}}, "bands": "auto"},
-    # fewer than 8 inliers: the least squares of every search fits a similarity
-    # (register.ransac.similarity_below)
-    "wf_sim8": {"pipeline": {"ransac": {"similarity_below": 8}}, "bands": "auto"},
-    "wf_sim8_refined": {"pipeline": {"ransac": {"similarity_below": 8}}, "bands": "auto",
-                        "refine": {}},  # fmt: skip
-    "wf_sim8_peaks3": {"pipeline": {"ransac": {"similarity_below": 8}, "small": {"peaks": 3}},
-                       "bands": "auto"},  # fmt: skip
-    # the candidate default of --set tiny (both of the above), and with the refinement stage
-    "wf_tiny": {"pipeline": {"ransac": {"similarity_below": 8}, "small": {"peaks": 3}},
-                "bands": "auto"},  # fmt: skip
-    "wf_tiny_refined": {"pipeline": {"ransac": {"similarity_below": 8}, "small": {"peaks": 3}},
-                        "bands": "auto", "refine": {}},  # fmt: skip
+    # (--set tiny candidates measured and removed: several CFOG peaks per window,
+    # register.small.peaks; a similarity below 8 inliers, register.ransac.similarity_below;
+    # figures in docs/BENCHMARKS.md "Small queries")
     # the calibrated CFOG-peak null as a second source of evidence (docs/BENCHMARKS.md "A
     # calibrated null for the CFOG peak")
     "wf_null": {"pipeline": {"small": {"null_test": {"enabled": True}}}, "bands": "auto"},

@@ -207,8 +207,7 @@ def fit_homography(
     map feature pixels), max_seconds (time bound over rounds), max_iters (per round), confidence,
     rounds (most rounds; stops early when two rounds agree), affine_below (with fewer inliers the
     least-squares re-estimation fits an affine map: 8 degrees of freedom from a handful of
-    clustered points extrapolate badly over the footprint), similarity_below (with fewer inliers
-    still, a similarity: 4 degrees of freedom; 0 = never, the default). Map coordinates are centred and scaled
+    clustered points extrapolate badly over the footprint). Map coordinates are centred and scaled
     to map feature pixels for the solver, so thresholds are in pixels and numerics stay sane.
     """
     n = len(q_xy)
@@ -263,15 +262,11 @@ def fit_homography(
     Hn = best_H
     inl = _residuals(Hn, src, dst) < thr
     affine_below = int(conf.get("affine_below", 12))
-    similarity_below = int(conf.get("similarity_below", 0))
     model = "homography"
     for _ in range(3):  # least squares on all inliers, re-evaluate the support
         if inl.sum() < 4:
             break
-        if inl.sum() < similarity_below:
-            # a handful of inliers: even an affine map's shear and anisotropy extrapolate badly
-            Hls, cand, keep = similarity_lsq(src[inl], dst[inl]), "similarity", 0.8
-        elif inl.sum() < affine_below:
+        if inl.sum() < affine_below:
             # too few inliers to pin 8 degrees of freedom: perspective terms would extrapolate wildly
             Hls, cand, keep = affine_lsq(src[inl], dst[inl]), "affine", 0.8
         else:

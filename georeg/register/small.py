@@ -40,7 +40,6 @@ SMALL_DEFAULTS: dict[str, Any] = {
     "max_windows": 3,
     "step_deg": 10.0,
     "max_side": 96,
-    "peaks": 1,
     "radii_px": [8.0, 4.0],
     "ratio": 0.8,
     "inlier_px": 3.0,
@@ -220,10 +219,8 @@ def small_register(
         box = (float(cr[:, 0].min()), float(cr[:, 1].min()), float(cr[:, 0].max()),
                float(cr[:, 1].max()))  # fmt: skip
         places_px = max(1.0, (box[2] - box[0]) * (box[3] - box[1]))
-    n_peaks = int(sc.get("peaks", 1))
     r = dense_search(q0, q_gsd / win_px, win, float(sc["step_deg"]), int(sc["max_side"]),
-                     centre_box=box, n_peaks=n_peaks,
-                     apart_px=float(sc["radii_px"][0]) * feature_gsd / win_px)  # fmt: skip
+                     centre_box=box)  # fmt: skip
     if r is None:
         rec.update(reason="no overlap", seconds=time.perf_counter() - t0)
         return rec
