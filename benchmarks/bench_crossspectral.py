@@ -320,6 +320,11 @@ METHODS: dict[str, dict[str, Any]] = {
     # image): since issue 20 ("accuracy over the whole footprint") the global homography is first
     # refitted to dense CFOG tie points (refine.global_fit); `_before` = the refinement without it
     "wf_default_refined": {"pipeline": {}, "bands": "auto", "refine": {}},
+    # a location prior (queries.<name>.prior, georeg/register/prior.py): a square of half side
+    # `prior` x the query's ground side around the true centre moved by a seeded offset of up to
+    # half that; an unrelated pair: the same square at a seeded place of its map
+    "wf_prior2": {"pipeline": {}, "bands": "auto", "prior": 2.0},
+    "wf_prior8": {"pipeline": {}, "bands": "auto", "prior": 8.0},
     # an accepted fit kept as RANSAC's least squares fitted it (before session 9) instead of
     # refitted with the model chosen by leave-one-out CV (register.ransac.final_model)
     "wf_ransac_final": {"pipeline": {"ransac": {"final_model": "ransac"}}, "bands": "auto"},
@@ -497,6 +502,22 @@ def plain_window_reader(sc: Scene) -> Any:
     return read
 
 
+def location_prior(q: Query, sc_map: Scene, factor: float, seed: int) -> dict[str, Any]:
+    """A prior ``{"centre", "radius_m"}`` in this benchmark's map units (x = col g, y = -row g):
+    radius = ``factor`` x the query's ground side, centred on the true centre moved by a seeded
+    offset of up to half the radius (an unrelated pair: at a seeded place of its map)."""
+    rng = np.random.default_rng(seed + 7)
+    g = sc_map.map_gsd
+    r = factor * next(iter(q.bands.values())).shape[0] * q.gsd
+    if q.truth_map is not None:
+        c = np.mean(q.truth_map, axis=0) * np.array([g, -g])
+    else:
+        h, w = sc_map.map_gray.shape
+        c = np.array([rng.uniform(0, w) * g, -rng.uniform(0, h) * g])
+    c = c + rng.uniform(-0.5, 0.5, 2) * r
+    return {"centre": [float(c[0]), float(c[1])], "radius_m": float(r)}
+
+
 def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict[str, Any]:
     """The workflow's registration stages (georeg.register.fuse.register_query) on plain arrays;
     with ``spec["refine"]`` also the refinement stage."""
@@ -509,7 +530,9 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
     mxy, mdesc, mang, msize = map_features(sc_map, fgsd, merged_conf(FEATURES))
     src = MapSource(mxy, mdesc, fgsd, angle=mang, scale=msize * fgsd)
     u8 = query_stack(q, spec.get("bands", 1))
-    res = register_query(u8, src, conf, q.gsd, [q.gsd / fgsd], seed, plain_window_reader(sc_map))
+    prior = None if not spec.get("prior") else location_prior(q, sc_map, float(spec["prior"]), seed)
+    res = register_query(u8, src, conf, q.gsd, [q.gsd / fgsd], seed, plain_window_reader(sc_map),
+                         prior)  # fmt: skip
     split = res.get("split") or {}
     wins = (split.get("small") or {}).get("windows") or []
     sw = [w.get("log10_nfa") for w in wins if w.get("log10_nfa") is not None]
