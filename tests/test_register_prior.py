@@ -115,3 +115,38 @@ def test_register_query_with_a_prior_registers_with_fewer_tests_and_one_elsewher
     away = register_query(q, src, conf, 0.8, [0.8], seed=2,
                           prior={"centre": [430900.0, 3769700.0], "radius_m": 50.0})  # fmt: skip
     assert away["status"] == "not_found"
+
+
+def test_sources_run_in_order_only_while_nothing_is_accepted(monkeypatch):
+    """fuse.run_sources: a source is one function + one entry of fuse.SOURCES; it runs only while
+    no candidate is accepted, and the record says which ran, what each tried, which accepted."""
+    from georeg.register import fuse
+    from georeg.register.search import MapView, QueryInput
+
+    calls = []
+
+    def make(name, accept):
+        def source(q, view, parts, conf):
+            calls.append(name)
+            part = {"part": len(parts), "accepted": accept, "candidates_tried": 2}
+            return [*parts, part], {"ran": True, "candidates": 2}
+
+        return source
+
+    def whole(q, view, parts, conf):
+        return parts, {"ran": False, "plan": {"parts": 1}}
+
+    monkeypatch.setattr(fuse, "SOURCES", (("whole_query", whole), ("small_windows", make("a", False)),
+                                          ("cfog_null", make("b", True)), ("new", make("c", True))))  # fmt: skip
+    parts0 = [{"part": 0, "accepted": False, "candidates_tried": 8}]
+    q = QueryInput(np.zeros((8, 8), np.uint8), None, 1.0, [1.0])  # type: ignore[arg-type]
+    parts, split, ran, _ = fuse.run_sources(q, MapView(None), parts0, {})  # type: ignore[arg-type]
+    assert calls == ["a", "b"]  # "c" after an accepted source: not run
+    assert [(r["name"], r["accepted"], r["candidates"]) for r in ran] == [
+        ("features", False, 8), ("small_windows", False, 2), ("cfog_null", True, 2)]  # fmt: skip
+    assert len(parts) == 3 and parts[-1]["accepted"]
+    assert split["parts"] == 1 and split["small"]["ran"] and split["small"]["cfog_null"]["ran"]
+    # an accepted feature search: no other source runs
+    calls.clear()
+    _, _, ran, _ = fuse.run_sources(q, MapView(None), [{**parts0[0], "accepted": True}], {})  # type: ignore[arg-type]
+    assert calls == [] and [r["name"] for r in ran] == ["features"]

@@ -220,8 +220,12 @@ def whole_query_fallback(
 def whole_query_source(
     q: QueryInput, view: MapView, parts: list[dict[str, Any]], conf: dict[str, Any]
 ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """Source ``whole_query``: ``whole_query_fallback`` (its record is the split plan)."""
-    return whole_query_fallback(q.features, view.source, parts, conf, q.gsd, q.seed)
+    """Source ``whole_query``: ``whole_query_fallback``; its record holds the split ``plan``."""
+    n0 = len(parts)
+    parts, plan = whole_query_fallback(q.features, view.source, parts, conf, q.gsd, q.seed)
+    ran = plan.get("whole_query_searched") == "after every part failed"
+    tried = sum(p.get("candidates_tried", 0) for p in parts[n0:])
+    return parts, {"ran": ran, "candidates": tried, "plan": plan}
 
 
 Source = Callable[
@@ -230,7 +234,9 @@ Source = Callable[
 ]
 
 #: the sources of candidates after the parts' feature search, in order; each runs only while no
-#: candidate is accepted. A new source is one function with this signature and one entry here.
+#: candidate is accepted. A source is one function with this signature: it returns the parts
+#: with its accepted candidate appended (a part record) and its own record (``ran``, and
+#: ``candidates`` tried when it ran). Adding a source is one entry here.
 SOURCES: tuple[tuple[str, Source], ...] = (
     ("whole_query", whole_query_source),
     ("small_windows", small.window_source),
@@ -241,12 +247,13 @@ SOURCES: tuple[tuple[str, Source], ...] = (
 def run_sources(
     q: QueryInput, view: MapView, parts: list[dict[str, Any]], conf: dict[str, Any]
 ) -> tuple[list[dict[str, Any]], dict[str, Any], list[dict[str, Any]], dict[str, float]]:
-    """The parts' search, then every source of ``SOURCES`` in turn until one is accepted.
+    """After the parts' feature search, every source of ``SOURCES`` in turn while nothing is
+    accepted (the whole-query search also records the split plan).
 
     Returns the parts (one more per accepted source), the split record of registration.json
-    (the plan, ``small``: the small-query sources' records), the ``sources`` record (name, ran,
-    accepted, candidates, seconds of each) and the timings of the sources that ran."""
-    ran = [{"name": "features", "ran": True, "accepted": any(p.get("accepted") for p in parts),
+    (the plan; ``small``: the small-query sources' records), the ``sources`` record (name,
+    candidates tried, accepted, seconds of each source that ran) and their timings."""
+    ran = [{"name": "features", "accepted": any(p.get("accepted") for p in parts),
             "candidates": int(sum(p.get("candidates_tried", 0) for p in parts))}]  # fmt: skip
     recs: dict[str, dict[str, Any]] = {}
     timings: dict[str, float] = {}
@@ -256,23 +263,16 @@ def run_sources(
             continue
         t0 = time.perf_counter()
         n0 = len(parts)
-        parts, rec = fn(q, view, parts, conf)
-        recs[name] = rec
-        did = (rec.get("whole_query_searched") == "after every part failed"
-               if name == "whole_query" else rec.get("ran", "reason" not in rec))  # fmt: skip
-        if not did:
-            continue
-        timings[name] = time.perf_counter() - t0
-        new = parts[n0:]
-        cands = (sum(p.get("candidates_tried", 0) for p in new) if name == "whole_query"
-                 else len(rec.get("windows") or []) if name == "small_windows" else 1)  # fmt: skip
-        ran.append({"name": name, "ran": True, "accepted": any(p.get("accepted") for p in new),
-                    "candidates": int(cands), "seconds": round(timings[name], 3)})  # fmt: skip
-    split = recs["whole_query"]
-    small_rec = dict(recs["small_windows"])
-    if recs["cfog_null"].get("ran", True) and "cfog_null" in [r["name"] for r in ran]:
-        small_rec["cfog_null"] = recs["cfog_null"]
-    split["small"] = small_rec
+        parts, recs[name] = fn(q, view, parts, conf)
+        if recs[name].get("ran"):
+            timings[name] = time.perf_counter() - t0
+            ran.append({"name": name, "accepted": any(p.get("accepted") for p in parts[n0:]),
+                        "candidates": int(recs[name].get("candidates", 0)),
+                        "seconds": round(timings[name], 3)})  # fmt: skip
+    split = recs["whole_query"]["plan"]
+    split["small"] = dict(recs["small_windows"])
+    if recs["cfog_null"].get("ran"):
+        split["small"]["cfog_null"] = recs["cfog_null"]
     return parts, split, ran, timings
 
 

@@ -306,8 +306,10 @@ def first_accepted_window(windows: list[tuple[float, ...]], read_window: Any, re
         if rec["accepted"]:
             part = {**rec, "part": len(parts), "rows": [0, height], "whole_query": True,
                     flag: True, "candidates_tried": k + 1, "candidates": []}  # fmt: skip
-            return [*parts, part], {"ran": True, "windows": tried, "accepted_window": k}
-    return parts, {"ran": True, "windows": tried, "accepted_window": None}
+            return [*parts, part], {"ran": True, "candidates": len(tried), "windows": tried,
+                                    "accepted_window": k}  # fmt: skip
+    return parts, {"ran": True, "candidates": len(tried), "windows": tried,
+                   "accepted_window": None}  # fmt: skip
 
 
 def _why_not(u8: np.ndarray, conf: dict[str, Any], gsd_m: float | None,
@@ -364,7 +366,7 @@ def null_source(
     assert gsd_m is not None
     h = u8.shape[-2]
     got = null_register(u8, gsd_m, source, conf, read_window)
-    rec = {"ran": True, **{k: v for k, v in got.items() if k not in ("homography",)}}
+    rec = {"ran": True, "candidates": 1, **{k: v for k, v in got.items() if k != "homography"}}
     if got["accepted"]:
         part = {**got, "part": len(parts), "rows": [0, h], "whole_query": True,
                 "small": True, "candidates_tried": 1, "candidates": []}  # fmt: skip
