@@ -814,6 +814,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--out", default=str(ROOT / "results" / "benchmark" / "crossspectral.json"))
     ap.add_argument("-v", action="store_true", help="one line per query and method")
+    ap.add_argument("--shard", default="0/1",
+                    help="k/n: only every n-th query from the k-th (seeds as in the whole run), "
+                    "to spread one run over processes")  # fmt: skip
     ap.add_argument("--positives-only", action="store_true",
                     help="skip the unrelated pairs (for changes that cannot alter a decision)")
     ap.add_argument("--content-truth", action="store_true",
@@ -839,7 +842,10 @@ def main(argv: list[str] | None = None) -> int:
         queries = [q for q in queries if half_of(by[q.scene].city) == a.half]
     methods = a.methods.split(",")
     rows: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
+    k_shard, n_shard = (int(v) for v in a.shard.split("/"))
     for qi, q in enumerate(queries):
+        if qi % n_shard != k_shard:
+            continue
         half = a.set if a.set != "protocol" else half_of(by[q.scene].city)
         for name in methods:
             res = run_method(q, by[q.map_scene], METHODS[name], a.seed + qi)
