@@ -817,6 +817,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--shard", default="0/1",
                     help="k/n: only every n-th query from the k-th (seeds as in the whole run), "
                     "to spread one run over processes")  # fmt: skip
+    ap.add_argument("--from", dest="first", type=int, default=0,
+                    help="skip the queries before this index (seeds as in the whole run)")
     ap.add_argument("--positives-only", action="store_true",
                     help="skip the unrelated pairs (for changes that cannot alter a decision)")
     ap.add_argument("--content-truth", action="store_true",
@@ -844,7 +846,7 @@ def main(argv: list[str] | None = None) -> int:
     rows: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
     k_shard, n_shard = (int(v) for v in a.shard.split("/"))
     for qi, q in enumerate(queries):
-        if qi % n_shard != k_shard:
+        if qi % n_shard != k_shard or qi < a.first:
             continue
         half = a.set if a.set != "protocol" else half_of(by[q.scene].city)
         for name in methods:
