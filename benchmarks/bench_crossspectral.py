@@ -23,7 +23,7 @@ its half) must come out not found.
 
 Methods: single-region matchers on the whole map (``sift_plain``, ``paper``, ``vote_*``), the
 workflow's registration stages on plain map arrays (``wf_*``: georeg.register.fuse.register_query
-with config/config.yaml's ``register`` section), the dense CFOG search (``dense``) and both.
+with config/config.yaml's ``register`` section).
 Outcome per query: success = accepted with median error <= 5 map pixels; false accept = accepted
 with a larger error, or any acceptance of an unrelated pair; missed = not accepted. Per half:
 registered, false accepts, unrelated accepted, median error, median p90 and max error over the
@@ -54,7 +54,7 @@ SHARED = ROOT.parent / "shared" / "data"
 DATES = SHARED / "swir_dates"
 
 from georeg.index.features import detect_and_describe, merged_conf, resample  # noqa: E402
-from georeg.register import acceptance, crossspectral, matching  # noqa: E402
+from georeg.register import acceptance, matching  # noqa: E402
 
 SUCCESS_PX = 5.0
 TINY_SIDES = (40, 80)  # --set tiny: query px a side, like the checking half's smallest crops
@@ -296,24 +296,9 @@ METHODS: dict[str, dict[str, Any]] = {
     "wf_small": {"pipeline": {"small": {"enabled": True}}, "bands": "auto"},  # dense Hough windows
     "wf_small_160": {"pipeline": {"small": {"enabled": True, "max_side_px": 160}},
                      "bands": "auto"},  # fmt: skip
-    # --set tiny candidates: several CFOG peaks per window, a lower SIFT contrast threshold,
-    # more windows (register.small.peaks, .features, .max_windows)
-    "wf_peaks3": {"pipeline": {"small": {"peaks": 3}}, "bands": "auto"},
-    "wf_peaks3_ct01": {"pipeline": {"small": {"peaks": 3, "features": {
-        "max_features_per_mpx": 0, "sift": {"contrast_threshold": 0.01}}}}, "bands": "auto"},
-    "wf_peaks3_w5": {"pipeline": {"small": {"peaks": 3, "max_windows": 5}}, "bands": "auto"},
-    # fewer than 8 inliers: the least squares of every search fits a similarity
-    # (register.ransac.similarity_below)
-    "wf_sim8": {"pipeline": {"ransac": {"similarity_below": 8}}, "bands": "auto"},
-    "wf_sim8_refined": {"pipeline": {"ransac": {"similarity_below": 8}}, "bands": "auto",
-                        "refine": {}},  # fmt: skip
-    "wf_sim8_peaks3": {"pipeline": {"ransac": {"similarity_below": 8}, "small": {"peaks": 3}},
-                       "bands": "auto"},  # fmt: skip
-    # the candidate default of --set tiny (both of the above), and with the refinement stage
-    "wf_tiny": {"pipeline": {"ransac": {"similarity_below": 8}, "small": {"peaks": 3}},
-                "bands": "auto"},  # fmt: skip
-    "wf_tiny_refined": {"pipeline": {"ransac": {"similarity_below": 8}, "small": {"peaks": 3}},
-                        "bands": "auto", "refine": {}},  # fmt: skip
+    # (--set tiny candidates measured and removed: several CFOG peaks per window,
+    # register.small.peaks; a similarity below 8 inliers, register.ransac.similarity_below;
+    # figures in docs/BENCHMARKS.md "Small queries")
     # the calibrated CFOG-peak null as a second source of evidence (docs/BENCHMARKS.md "A
     # calibrated null for the CFOG peak")
     "wf_null": {"pipeline": {"small": {"null_test": {"enabled": True}}}, "bands": "auto"},
@@ -322,19 +307,12 @@ METHODS: dict[str, dict[str, Any]] = {
     # since session 8; docs/BENCHMARKS.md "The null scan as a check of small feature fits")
     "wf_nocheck": {"pipeline": {"small": {"null_test": {"check": False}}}, "bands": "auto"},
     # accepted fits checked densely against the orthophoto in the fuse step
-    # (georeg.register.ortho_check, register.ortho_check): a dense affine refit replaces the fit
-    # when its CV is better and it verifies; a fit that does not verify becomes not found
+    # (georeg.register.ortho_check, register.ortho_check): a fit that does not verify becomes not
+    # found (the refit that replaced the fit was measured and removed)
     "wf_ortho_off": {"pipeline": {"ortho_check": {"mode": "off"}}, "bands": "auto"},
-    # the candidate measured (docs/BENCHMARKS.md "Dense check of accepted fits"): reject +
-    # replace; the default since is record without replacement (decisions and fits unchanged)
-    "wf_ortho": {"pipeline": {"ortho_check": {"mode": "reject", "replace": True}}, "bands": "auto"},
-    "wf_ortho_record": {"pipeline": {"ortho_check": {"mode": "record", "replace": False}},
-                        "bands": "auto"},  # fmt: skip
-    # the ortho check's refit replacement alone (decisions unchanged), then the refinement stage
-    "wf_replace_refined": {"pipeline": {"ortho_check": {"mode": "record", "replace": True}},
-                           "bands": "auto", "refine": {}},  # fmt: skip
-    "wf_small_searched": {"pipeline": {"small": {"enabled": True, "windows": "searched"}},
-                          "bands": "auto"},  # fmt: skip
+    # the candidate measured (docs/BENCHMARKS.md "Dense check of accepted fits") was reject +
+    # replace; the default is record (decisions and fits unchanged)
+    "wf_ortho": {"pipeline": {"ortho_check": {"mode": "reject"}}, "bands": "auto"},
     # the same with the ranking before the Hough vote on plain arrays (register.index.rank:
     # tiles, which without an index means 1-NN votes of the query descriptors on footprint cells)
     # the workflow default followed by the workflow's refinement stage (rule refine_registration:
@@ -342,6 +320,11 @@ METHODS: dict[str, dict[str, Any]] = {
     # image): since issue 20 ("accuracy over the whole footprint") the global homography is first
     # refitted to dense CFOG tie points (refine.global_fit); `_before` = the refinement without it
     "wf_default_refined": {"pipeline": {}, "bands": "auto", "refine": {}},
+    # a location prior (queries.<name>.prior, georeg/register/prior.py): a square of half side
+    # `prior` x the query's ground side around the true centre moved by a seeded offset of up to
+    # half that; an unrelated pair: the same square at a seeded place of its map
+    "wf_prior2": {"pipeline": {}, "bands": "auto", "prior": 2.0},
+    "wf_prior8": {"pipeline": {}, "bands": "auto", "prior": 8.0},
     # an accepted fit kept as RANSAC's least squares fitted it (before session 9) instead of
     # refitted with the model chosen by leave-one-out CV (register.ransac.final_model)
     "wf_ransac_final": {"pipeline": {"ransac": {"final_model": "ransac"}}, "bands": "auto"},
@@ -378,13 +361,6 @@ METHODS: dict[str, dict[str, Any]] = {
     # one band chosen by wavelength (the nearest the scene has): which SWIR band alone
     "wf_band_1600nm": {"pipeline": {}, "bands": "1600nm"},
     "wf_band_2200nm": {"pipeline": {}, "bands": "2200nm"},
-    # area-based (georeg.register.dense, config register.dense; off in the workflow by default):
-    # CFOG channels correlated by FFT over 10 deg rotations on the whole map, the peak's
-    # similarity refined by a guided feature re-match, decided by the NFA (alone, and as the
-    # fallback of the workflow's stages when they find nothing)
-    "dense": {"dense": {}},
-    "wf_dense": {"pipeline": {}, "dense": {}},
-    "wf_dense_2bands": {"pipeline": {}, "dense": {}, "bands": 2},
     # the paper: one band brought to the map's GSD, SIFT/RootSIFT, ratio 0.7, Nt = 100
     "paper": {},
     "paper_all_matches": {"max_matches": 0},
@@ -503,10 +479,8 @@ def run_refine(q: Query, sc_map: Scene, H: np.ndarray, spec: dict[str, Any]) -> 
         band = band[0]
     x, y, info = refine(band, H, map_image(sc_map), conf)
     gf = info.get("global_fit") or {}
-    df = info.get("direct_fit") or {}
     return {"xy": (x, y), "refine_model": info["model"],
-            "global_fit": gf.get("accepted"), "global_fit_reason": gf.get("reason"),
-            "direct_fit": df.get("accepted"), "direct_fit_reason": df.get("reason")}  # fmt: skip
+            "global_fit": gf.get("accepted"), "global_fit_reason": gf.get("reason")}  # fmt: skip
 
 
 def plain_window_reader(sc: Scene) -> Any:
@@ -528,6 +502,22 @@ def plain_window_reader(sc: Scene) -> Any:
     return read
 
 
+def location_prior(q: Query, sc_map: Scene, factor: float, seed: int) -> dict[str, Any]:
+    """A prior ``{"centre", "radius_m"}`` in this benchmark's map units (x = col g, y = -row g):
+    radius = ``factor`` x the query's ground side, centred on the true centre moved by a seeded
+    offset of up to half the radius (an unrelated pair: at a seeded place of its map)."""
+    rng = np.random.default_rng(seed + 7)
+    g = sc_map.map_gsd
+    r = factor * next(iter(q.bands.values())).shape[0] * q.gsd
+    if q.truth_map is not None:
+        c = np.mean(q.truth_map, axis=0) * np.array([g, -g])
+    else:
+        h, w = sc_map.map_gray.shape
+        c = np.array([rng.uniform(0, w) * g, -rng.uniform(0, h) * g])
+    c = c + rng.uniform(-0.5, 0.5, 2) * r
+    return {"centre": [float(c[0]), float(c[1])], "radius_m": float(r)}
+
+
 def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict[str, Any]:
     """The workflow's registration stages (georeg.register.fuse.register_query) on plain arrays;
     with ``spec["refine"]`` also the refinement stage."""
@@ -540,7 +530,9 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
     mxy, mdesc, mang, msize = map_features(sc_map, fgsd, merged_conf(FEATURES))
     src = MapSource(mxy, mdesc, fgsd, angle=mang, scale=msize * fgsd)
     u8 = query_stack(q, spec.get("bands", 1))
-    res = register_query(u8, src, conf, q.gsd, [q.gsd / fgsd], seed, plain_window_reader(sc_map))
+    prior = None if not spec.get("prior") else location_prior(q, sc_map, float(spec["prior"]), seed)
+    res = register_query(u8, src, conf, q.gsd, [q.gsd / fgsd], seed, plain_window_reader(sc_map),
+                         prior)  # fmt: skip
     split = res.get("split") or {}
     wins = (split.get("small") or {}).get("windows") or []
     sw = [w.get("log10_nfa") for w in wins if w.get("log10_nfa") is not None]
@@ -553,7 +545,6 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
     extra["null_check"] = nk.get("outcome")
     oc = res.get("ortho_check") or {}
     extra["ortho"] = oc.get("outcome")
-    extra["ortho_replaced"] = oc.get("replaced")
     if spec.get("refine") is not None and res["status"] == "registered":
         extra.update(run_refine(q, sc_map, np.array(res["homography"]), spec))
     return {
@@ -571,44 +562,7 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
     }
 
 
-def run_dense(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict[str, Any]:
-    """georeg.register.dense.dense_register with the whole map as the one window."""
-    from georeg.register.dense import dense_register
-    from georeg.register.search import MapSource, query_features
-
-    t0 = time.perf_counter()
-    conf = _deep(workflow_register_conf(), {"dense": spec["dense"]})
-    fgsd = sc_map.map_gsd
-    nb = int(spec.get("bands", 1))
-    u8 = np.stack(list(q.bands.values())[:nb]) if nb > 1 else next(iter(q.bands.values()))
-    mxy, mdesc, _, _ = map_features(sc_map, fgsd, merged_conf(FEATURES))
-    src = MapSource(mxy, mdesc, fgsd)
-    qf = query_features(u8, (0, u8.shape[-2]), [q.gsd / fgsd], None)
-    A = np.diag([fgsd, -fgsd, 1.0])
-    r = dense_register(u8, qf, q.gsd, sc_map.map_gray, A, src, conf, seed)
-    return {
-        "matches": r.get("matches") or 0,
-        "inliers": r.get("inliers") or 0,
-        "accepted": bool(r["accepted"]),
-        "log10_nfa": r.get("log10_nfa"),
-        "H": None if r.get("homography") is None else np.array(r["homography"]),
-        "dense_z": r.get("dense_z"),
-        "dense_log10_nfa": r.get("dense_log10_nfa"),
-        "dense_ratio": r.get("dense_peak_ratio"),
-        "seconds": time.perf_counter() - t0,
-    }
-
-
 def run_method(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict[str, Any]:
-    if "pipeline" in spec and "dense" in spec:
-        res = run_pipeline(q, sc_map, spec, seed)
-        if not res["accepted"]:
-            d = run_dense(q, sc_map, spec, seed)
-            d["seconds"] += res["seconds"]
-            return {**res, **d}
-        return res
-    if "dense" in spec:
-        return run_dense(q, sc_map, spec, seed)
     if "pipeline" in spec:
         return run_pipeline(q, sc_map, spec, seed)
     t0 = time.perf_counter()
@@ -623,14 +577,14 @@ def run_method(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict
         band = gradmag(q.bands[b]) if structure == "gradmag" else q.bands[b]
         xy, d, r, ang, size = query_feats(band, q.gsd / fgsd, qconf)
         if spec.get("polarity"):
-            xy, d, r = crossspectral.add_polarity(xy, d, r)
+            xy, d, r = matching.add_polarity(xy, d, r)
             ang, size = np.r_[ang, (ang + 180.0) % 360.0], np.r_[size, size]
         xs.append(xy), ds.append(d), rs.append(r), angs.append(ang), sizes.append(size)
     qxy, qd, qr = np.concatenate(xs), np.concatenate(ds), np.concatenate(rs)
     qang, qsize = np.concatenate(angs), np.concatenate(sizes)
     knn = matching.knn2(mdesc)
     if spec.get("vote"):
-        hyps = crossspectral.rotation_hypotheses(
+        hyps = matching.rotation_hypotheses(
             qxy, qd, qang, qsize, mxy, mang, msize, knn, spec["vote"]
         )
     else:
@@ -660,7 +614,7 @@ def run_method(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict
         # guided re-match around the best hypothesis (accepted or not), refit, decide again
         fit0 = best[2]
         radius = float(spec["guided"]) * fgsd
-        gm = crossspectral.guided_matches(qxy, qd, fit0.H, mxy, mdesc, radius, 0.8, knn)
+        gm = matching.guided_matches(qxy, qd, fit0.H, mxy, mdesc, radius, 0.8, knn)
         if len(gm) >= 4:
             fit = matching.fit_homography(gm.q_xy, gm.m_xy, fgsd, REG["ransac"], seed)
             if fit.H is not None:
@@ -860,6 +814,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--out", default=str(ROOT / "results" / "benchmark" / "crossspectral.json"))
     ap.add_argument("-v", action="store_true", help="one line per query and method")
+    ap.add_argument("--shard", default="0/1",
+                    help="k/n: only every n-th query from the k-th (seeds as in the whole run), "
+                    "to spread one run over processes")  # fmt: skip
+    ap.add_argument("--from", dest="first", type=int, default=0,
+                    help="skip the queries before this index (seeds as in the whole run)")
     ap.add_argument("--positives-only", action="store_true",
                     help="skip the unrelated pairs (for changes that cannot alter a decision)")
     ap.add_argument("--content-truth", action="store_true",
@@ -885,7 +844,10 @@ def main(argv: list[str] | None = None) -> int:
         queries = [q for q in queries if half_of(by[q.scene].city) == a.half]
     methods = a.methods.split(",")
     rows: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
+    k_shard, n_shard = (int(v) for v in a.shard.split("/"))
     for qi, q in enumerate(queries):
+        if qi % n_shard != k_shard or qi < a.first:
+            continue
         half = a.set if a.set != "protocol" else half_of(by[q.scene].city)
         for name in methods:
             res = run_method(q, by[q.map_scene], METHODS[name], a.seed + qi)
@@ -896,12 +858,11 @@ def main(argv: list[str] | None = None) -> int:
                    "features": res.get("features"), "part_side": res.get("part_side"),
                    "size_px": next(iter(q.bands.values())).shape[0],
                    "log10_nfa": res.get("log10_nfa"), "seconds": res["seconds"],
-                   "dense_z": res.get("dense_z"), "dense_log10_nfa": res.get("dense_log10_nfa"),
-                   "dense_ratio": res.get("dense_ratio"), "refine_model": res.get("refine_model"),
+                   "refine_model": res.get("refine_model"),
                    "global_fit": res.get("global_fit"), "small_nfa": res.get("small_nfa"),
                    "null_nfa": res.get("null_nfa"), "null_accepted": res.get("null_accepted"),
                    "global_fit_reason": res.get("global_fit_reason"),
-                   "ortho": res.get("ortho"), "ortho_replaced": res.get("ortho_replaced"),
+                   "ortho": res.get("ortho"),
                    "null_check": res.get("null_check")}  # fmt: skip
             rows[name].append(rec)
             if a.v:
@@ -921,7 +882,7 @@ def main(argv: list[str] | None = None) -> int:
                          else f" null check {res['null_check']}")
                       + ("" if res.get("ortho") is None
                          else f" ortho {res['ortho']}"
-                         + (" (refit)" if res.get("ortho_replaced") else "")), flush=True)  # fmt: skip
+), flush=True)  # fmt: skip
     print(f"\n{len(queries)} queries and unrelated pairs, seed {a.seed}; halves by city: "
           f"tuning {', '.join(TUNING)}; checking {', '.join(CHECKING)}")  # fmt: skip
     print("| method | half | registered | false accepts | unrelated accepted | median err px "

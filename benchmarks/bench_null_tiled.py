@@ -1,9 +1,9 @@
 """The small-query CFOG null test on maps larger than one FFT: the tiled scan
-(``georeg.register.dense_tiled``) against the whole-map scan, and on a large real mosaic.
+(``georeg.register.null_scan``) against the whole-map scan, and on a large real mosaic.
 
 ``--equiv``: the tuning cities' tiny set (``bench_crossspectral.py --set tiny``, 40-80 px,
 ``--limit`` positives and unrelated pairs spread over the cities) against their own maps (<= 1 Mpx correlation): the
-whole-map scan (``dense_null.scan``, as ``small.null_register``) and the tiled scan with a forced
+whole-map scan (``null_scan.scan``, as ``small.null_register``) and the tiled scan with a forced
 ``--tile-px``; per query the two peaks' distance (map px), rotations and log10 p, and the whole
 scan's log10 p on the map less its first row and column (the statistic's own sensitivity to the
 phase of the shrink).
@@ -43,8 +43,10 @@ import bench_crossspectral as bc  # noqa: E402
 
 from georeg.register import matching  # noqa: E402
 from georeg.register.dense import window_u8  # noqa: E402
-from georeg.register.dense_null import scan  # noqa: E402
-from georeg.register.dense_tiled import tiled_scan  # noqa: E402
+from georeg.register.null_scan import (
+    scan,  # noqa: E402
+    tiled_scan,  # noqa: E402
+)
 from georeg.register.search import MapSource  # noqa: E402
 from georeg.register.small import null_register, small_conf  # noqa: E402
 

@@ -32,7 +32,7 @@ import bench_crossspectral as bc  # noqa: E402
 from georeg.index.features import merged_conf  # noqa: E402
 from georeg.register import matching  # noqa: E402
 from georeg.register.dense import correlation_surface, dense_search, window_u8  # noqa: E402
-from georeg.register.dense_null import block_maxima  # noqa: E402
+from georeg.register.null_scan import block_maxima  # noqa: E402
 from georeg.register.search import MapSource, query_features  # noqa: E402
 from georeg.register.small import dense_features_conf, small_conf, small_windows  # noqa: E402
 
@@ -146,7 +146,7 @@ def gumbel_log10_nfa(peak: float, null: np.ndarray, n_blocks: int) -> float:
 
 
 def spacing_log10_p(peak: float, null: np.ndarray, k: int) -> float:
-    """Top spacing: gap to the null's largest over the tail scale of its top k (as dense_null)."""
+    """Top spacing: gap to the null's largest over the tail scale of its top k (as null_scan)."""
     top = np.sort(null)[::-1]
     k = min(k, len(top) - 1)
     return -(peak - top[0]) / max(float(np.mean(top[:k] - top[k])), 1e-12) / math.log(10)

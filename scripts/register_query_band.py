@@ -15,6 +15,7 @@ def main(smk):
         smk.output.meta,
         tuple(smk.params.percentiles),
         q.get("bands", "auto"),
+        q.get("prior"),
     )
 
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from georeg.index.features import detect_and_describe
-from georeg.register import crossspectral, matching, search
+from georeg.register import matching, search
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "swir_dates"
 CONF = {
@@ -34,11 +34,11 @@ def test_flip_polarity_is_the_inverted_image_descriptor():
     assert len(kp) > 20
     kp2 = [cv2.KeyPoint(k.pt[0], k.pt[1], k.size, (k.angle + 180) % 360, 0, k.octave) for k in kp]
     kp2, d2 = sift.compute(255 - img, kp2)
-    rel = np.linalg.norm(d2 - crossspectral.flip_polarity(d), axis=1) / np.linalg.norm(d2, axis=1)
+    rel = np.linalg.norm(d2 - matching.flip_polarity(d), axis=1) / np.linalg.norm(d2, axis=1)
     assert np.median(rel) < 0.1  # exact up to OpenCV's sampling of the rotated grid
     # without the flip the inverted descriptors are far apart
     assert np.median(np.linalg.norm(d2 - d, axis=1) / np.linalg.norm(d2, axis=1)) > 0.5
-    assert np.array_equal(crossspectral.flip_polarity(crossspectral.flip_polarity(d)), d)
+    assert np.array_equal(matching.flip_polarity(matching.flip_polarity(d)), d)
 
 
 def _stretch(a: np.ndarray) -> np.ndarray:
@@ -126,9 +126,9 @@ def test_vote_rejects_an_unrelated_map_and_guided_rematch_refines():
 
 
 def test_vote_matcher_config_and_fallback():
-    assert crossspectral.matcher_conf({})["method"] == "vote"
-    assert crossspectral.matcher_conf({})["polarity"] == "both"
-    assert crossspectral.matcher_conf({"matcher": {"method": "paper"}})["polarity"] == "one"
+    assert matching.matcher_conf({})["method"] == "vote"
+    assert matching.matcher_conf({})["polarity"] == "both"
+    assert matching.matcher_conf({"matcher": {"method": "paper"}})["polarity"] == "one"
     with pytest.raises(ValueError, match="matcher"):
         qf = search.QueryFeatures(
             np.zeros((4, 2)), np.zeros((4, 128), np.float32), np.zeros(4), 10, 10, (0, 0), [1.0]

@@ -215,3 +215,28 @@ def test_real_sentinel2_band_in_lon_lat_is_refused_with_its_utm_zone(shared_data
     problems = check_inputs({"map": {"orthophoto": str(b04)}})
     assert len(problems) == 1 and b04.name in problems[0], problems
     assert "EPSG:32640" in problems[0]  # Abu Dhabi, 54.4 deg E: UTM zone 40N
+
+
+def test_a_location_prior_is_checked_and_must_overlap_the_map(tmp_path):
+    """queries.<name>.prior: malformed or off the map -> one clear line each; fine -> none."""
+    s = _scene()
+    ortho = _write(tmp_path / "ok.tif", [s["red"] * 250] * 3, "uint8")  # 96 m at 500000, 3760000
+    q = str(_two_band_swir(tmp_path / "q.tif"))
+
+    def problems(prior):
+        cfg = {"map": {"orthophoto": str(ortho)}, "queries": {"q": {"image": q, "prior": prior}}}
+        return check_inputs(cfg)
+
+    assert problems({"centre": [500050.0, 3759950.0], "radius_m": 30}) == []
+    assert problems({"box": [499000.0, 3759000.0, 500010.0, 3759910.0]}) == []
+    off = problems({"centre": [600000.0, 3759950.0], "radius_m": 30})
+    assert len(off) == 1 and off[0].startswith("queries.q.prior:") and "does not overlap" in off[0]
+    bad = problems({"box": [500100.0, 3759950.0, 500000.0, 3760000.0]})
+    assert len(bad) == 1 and bad[0].startswith("queries.q.prior.box") and "x0 < x1" in bad[0]
+    ll = problems({"centre": [-117.0, 200.0], "radius_m": 30, "crs": "lonlat"})
+    assert len(ll) == 1 and "out of range" in ll[0]
+    # lon/lat of the map's centre (UTM 11N): fine
+    from pyproj import Transformer
+
+    lon, lat = Transformer.from_crs(UTM, "EPSG:4326", always_xy=True).transform(500048, 3759952)
+    assert problems({"centre": [lon, lat], "radius_m": 20, "crs": "lonlat"}) == []

@@ -58,3 +58,56 @@ def test_no_module_outside_demo_imports_the_demo() -> None:
         if p.relative_to(PKG).parts[0] != "demo" and any(_package(n) == "demo" for _, n in _imports(p))
     ]
     assert users == []
+
+
+def _module_name(path: Path) -> str:
+    rel = path.relative_to(PKG.parent).with_suffix("")
+    parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    return ".".join(parts)
+
+
+def _import_graph(package: str) -> dict[str, set[str]]:
+    """Module -> the modules of the same package it imports (module level or in a function;
+    ``from georeg.x import y`` counts as importing ``georeg.x.y`` when that is a module)."""
+    mods = {_module_name(p): p for p in MODULES if p.relative_to(PKG).parts[0] == package}
+    graph: dict[str, set[str]] = {}
+    for name, path in mods.items():
+        deps = {n if n in mods else n.rsplit(".", 1)[0] for _, n in _imports(path)}
+        graph[name] = {d for d in deps if d in mods and d != name and not d.endswith(package)}
+    return graph
+
+
+def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One import cycle of ``graph`` (a list of modules, the first repeated at the end) or None."""
+    state: dict[str, int] = {}  # 1 = on the stack, 2 = done
+    stack: list[str] = []
+
+    def visit(n: str) -> list[str] | None:
+        state[n] = 1
+        stack.append(n)
+        for d in sorted(graph.get(n, ())):
+            if state.get(d) == 1:
+                return stack[stack.index(d) :] + [d]
+            if d not in state and (c := visit(d)):
+                return c
+        stack.pop()
+        state[n] = 2
+        return None
+
+    for n in sorted(graph):
+        if n not in state and (c := visit(n)):
+            return c
+    return None
+
+
+def test_find_cycle_sees_a_cycle_through_a_lazy_import() -> None:
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": {"b", "c"}, "b": {"c"}, "c": set()}) is None
+
+
+@pytest.mark.parametrize("package", ORDER)
+def test_no_import_cycle_inside_a_package(package: str) -> None:
+    """Within a package, imports form no circle (a lazy import inside a function counts: a
+    module that calls back up into its caller is a side path, not a layer)."""
+    cycle = find_cycle(_import_graph(package))
+    assert cycle is None, " -> ".join(cycle or [])

@@ -184,6 +184,15 @@ def test_single_band_png_and_write_query_band(tmp_path):
         assert d.count == 1  # `bands: auto` on one band: nothing to pool
     assert [b["index"] for b in meta["pooled_bands"]] == [0]
     assert read_query_bands(str(tmp_path / "b.tif")).shape == (1, 40, 30)
+    # a location prior is checked here and recorded in band.json for the search and fuse jobs
+    prior = {"centre": [10.0, 20.0], "radius_m": 50.0}
+    meta = write_query_band(str(p), "1200nm", None, tmp_path / "c.tif", tmp_path / "c.json",
+                            prior=prior)  # fmt: skip
+    assert meta["prior"] == prior
+    with pytest.raises(InputError, match=r"g\.png: queries prior: prior.radius_m"):
+        write_query_band(str(p), "1200nm", None, tmp_path / "d.tif", tmp_path / "d.json",
+                         prior={"centre": [10.0, 20.0], "radius_m": -1})  # fmt: skip
+    assert not (tmp_path / "d.tif").exists() and not (tmp_path / "d.json").exists()
 
 
 def test_auto_partner_pools_the_other_swir_window():

@@ -128,41 +128,6 @@ def test_fit_homography_recovers_known_mapping_with_outliers():
         assert f2.n_inliers >= 58
 
 
-def test_fit_with_few_inliers_falls_back_to_a_similarity_that_extrapolates_better():
-    """``ransac.similarity_below``: 6 noisy true matches in half of an 80 px footprint (a tiny
-    query's support) under a random rotation, 20 m per query px and a shift, plus 6 far outliers:
-    the least squares fit a similarity (model recorded; the form of the truth) whose error at the
-    footprint's corners is smaller than the affine fit's of the same matches (the default below
-    12 inliers) on most draws and at the median."""
-    corners = np.array([[0, 0], [80, 0], [0, 80], [80, 80]], float)
-    err = []
-    for seed in range(20):
-        rng = np.random.default_rng(seed)
-        th = np.radians(rng.uniform(0, 360))
-        c, s = np.cos(th), np.sin(th)
-        # query (col, row) -> map (x, y), y up: rotation, 20 m per query px, the row flip
-        H = np.array([[20 * c, 20 * s, 5e5], [20 * s, -20 * c, 4e6], [0, 0, 1.0]])
-        q = rng.uniform(5, 45, (6, 2))
-        m = matching.apply_h(H, q) + rng.normal(0, 5.0, (6, 2))  # 0.5 map px at 10 m
-        q = np.r_[q, rng.uniform(0, 80, (6, 2))]
-        far = rng.uniform(500, 2000, (6, 2)) * rng.choice([-1, 1], (6, 2))
-        m = np.r_[m, matching.apply_h(H, q[6:]) + far]
-        fits = {below: matching.fit_homography(q, m, 10.0, {"reproj_px": 3.0,
-                                                            "similarity_below": below}, seed=2)
-                for below in (0, 8)}  # fmt: skip
-        if fits[8].info["model"] != "similarity":
-            continue  # RANSAC kept a wrong support: no least-squares model to compare
-        assert fits[0].info["model"] == "affine"
-        J = fits[8].H[:2, :2]
-        assert np.allclose([J[0, 0] + J[1, 1], J[0, 1] - J[1, 0]], 0.0, atol=1e-9 * abs(J).max())
-        err.append([np.abs(matching.apply_h(f.H, corners) - matching.apply_h(H, corners)).max()
-                    / 10.0 for f in (fits[0], fits[8])])  # fmt: skip
-    e = np.array(err)
-    assert len(e) >= 15
-    assert (e[:, 1] < e[:, 0]).mean() >= 0.8
-    assert np.median(e[:, 1]) < 0.75 * np.median(e[:, 0])
-
-
 def test_plausibility_handedness_scale_and_nfa():
     conf = {"scale_tolerance": 0.3}
     # north-up nadir image at 0.8 m: col -> +x, row -> -y; det < 0
@@ -467,60 +432,12 @@ def test_small_enmap_swir_cube_registers_through_the_query_stage(enmap, tmp_path
 
 
 @pytest.mark.shared
-def test_dense_search_registers_real_swir_and_rejects_an_unrelated_map(enmap):
-    """CFOG correlation over rotations + guided re-match: the EnMAP 2200 nm query found in the
-    650 nm band with no feature search at all; the same query in a random texture is refused."""
-    from georeg.register.dense import dense_register, dense_search, window_u8
+def test_dense_search_finds_real_swir(enmap):
+    """CFOG correlation over rotations: the EnMAP 2200 nm query's rotation and place found in the
+    650 nm band with no feature search at all."""
+    from georeg.register.dense import dense_search
 
-    tr = enmap[1]
     vis, vm, v8, src, q, Minv = _small_enmap_query(enmap, 140.0, (176, 251))
     r = dense_search(q, 0.5, v8, 10.0)
     assert r is not None and abs(((r.angle_deg - 140.0) + 180) % 360 - 180) <= 10.0
     assert r.log10_nfa < -3
-    conf = default_register_conf()
-    qf = query_features(q, (0, 150), [0.5], FEAT)
-    A = np.array([[tr.a, tr.b, tr.c], [tr.d, tr.e, tr.f], [0, 0, 1.0]]) @ np.array(
-        [[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1.0]]
-    )
-    rec = dense_register(q, qf, 15.0, window_u8(np.where(vm, vis, np.nan)), A, src, conf, 1)
-    assert rec["accepted"], rec
-    err = error_px(np.array(rec["homography"]), Minv, tr, q)
-    assert np.median(err) < 1.0 and np.percentile(err, 90) < 2.0
-    other = texture(v8.shape, seed=5)
-    osrc = map_source(other, np.ones(other.shape, bool), tr)
-    bad = dense_register(q, qf, 15.0, other, A, osrc, conf, 1)
-    assert not bad["accepted"]
-
-
-def test_candidate_windows_whole_query_first_distinct():
-    parts = [
-        {"part": 0, "rows": [0, 50], "candidates": [{"bounds": [0, 0, 10, 10]}]},
-        {"part": 1, "rows": [50, 100], "candidates": [{"bounds": [1, 1, 11, 11]},
-                                                      {"bounds": [40, 40, 50, 50]}]},
-        {"part": 2, "whole_query": True, "rows": [0, 100],
-         "candidates": [{"bounds": [20, 20, 30, 30]}, {"bounds": [0.5, 0, 10.5, 10]}]},
-    ]  # fmt: skip
-    wins = fuse_mod.candidate_windows(parts, 3)
-    assert wins == [(20, 20, 30, 30), (0.5, 0, 10.5, 10), (40, 40, 50, 50)]
-
-
-def test_dense_fallback_off_by_default_and_refuses_an_unrelated_map(synthetic_map):
-    img, tr, src = synthetic_map
-    q = texture((120, 120), seed=99)  # not on the map
-    full = query_features(q, (0, 120), [1.0], None)
-    parts = [{"part": 0, "rows": [0, 120], "accepted": False,
-              "candidates": [{"bounds": [430100.0, 3769500.0, 430500.0, 3769900.0]}]}]  # fmt: skip
-    A = np.array([[1.0, 0, 430000.5], [0, -1.0, 3769999.5], [0, 0, 1]])
-
-    def read(b):
-        c0, r0 = int(b[0] - 430000), int(3770000 - b[3])
-        c1, r1 = int(b[2] - 430000), int(3770000 - b[1])
-        win = img[r0:r1, c0:c1].astype(np.float32)
-        return win, A @ np.array([[1.0, 0, c0], [0, 1.0, r0], [0, 0, 1]])
-
-    out, rec = fuse_mod.dense_fallback(q, full, src, parts, reg_conf(), 1.0, read)
-    assert out == parts and rec == {"ran": False, "reason": "disabled"}
-    on = reg_conf(dense={"enabled": True})
-    out, rec = fuse_mod.dense_fallback(q, full, src, parts, on, 1.0, read)
-    assert rec["ran"] and len(rec["windows"]) == 1 and rec["accepted_window"] is None
-    assert out == parts

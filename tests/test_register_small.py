@@ -177,12 +177,12 @@ def _field(seed: int, shape: tuple[int, int], sigma: float = 2.0) -> np.ndarray:
 
 
 def test_cfog_null_accepts_the_true_place_and_rejects_an_unrelated_map():
-    """``dense_null.scan``: a rotated, noisy, contrast-inverted crop of the map is found with a
+    """``null_scan.scan``: a rotated, noisy, contrast-inverted crop of the map is found with a
     block-maxima NFA far below the default bound and ``fine_pose`` puts it within a pixel and a
     degree; the same kind of query cut from an unrelated field is not accepted (5 draws)."""
     import cv2
 
-    from georeg.register.dense_null import NULL_DEFAULTS, fine_pose, scan
+    from georeg.register.null_scan import NULL_DEFAULTS, fine_pose, scan
 
     m = _field(2, (320, 320))
     theta = 23.0
@@ -217,7 +217,7 @@ def test_cfog_null_registers_a_tiny_sentinel2_query_and_rejects_another_city():
 
     bc = _bench()
     from georeg.index.features import merged_conf
-    from georeg.register.dense_null import null_conf
+    from georeg.register.null_scan import null_conf
     from georeg.register.search import MapSource
     from georeg.register.small import null_register, small_conf
 
@@ -289,7 +289,7 @@ def test_null_register_accepts_a_synthetic_crop_records_the_evidence_and_skips_l
     for k in ("score", "null_max", "gap", "tail_scale", "null_blocks", "log10_p", "statistic"):
         assert k in rec
     assert rec["log10_nfa"] < -3.0 and rec["null_blocks"] >= 30
-    # above max_map_px: the tiled scan (dense_tiled) gives the same place; above its cap, none
+    # above max_map_px: the tiled scan (null_scan.tiled_scan) gives the same place; above its cap, none
     tiled = null_register(q, g, src, {"small": {"null_test": {"max_map_px": 1000}}}, read)
     assert tiled["accepted"] and tiled["scan"] == "tiled" and rec["scan"] == "whole", tiled
     ct = matching.apply_h(np.array(tiled["homography"]), np.array([[30.0, 30.0]]))[0]

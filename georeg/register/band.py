@@ -263,11 +263,13 @@ def write_query_band(
     out_json: str,
     percentiles: tuple[float, float] = (1.0, 99.0),
     bands_spec: Any = "auto",
+    prior: Any = None,
 ) -> dict[str, Any]:
     """Rule query_band: select, mask and stretch the band and the bands pooled with it; write
     band.tif (uint8, 0 = nodata, in query geometry; band 1 = the primary band, then the pooled
     ones, see ``pooled_indices``) and band.json (what was chosen, stretch, valid fraction, time;
-    ``pooled_bands``: one record per band of band.tif)."""
+    ``pooled_bands``: one record per band of band.tif; ``prior``: the query's location prior as
+    configured, checked here, read by the search_part and fuse_parts jobs)."""
     import time
     import warnings
 
@@ -275,8 +277,13 @@ def write_query_band(
 
     from georeg.io.atomic import atomic_path, write_json
     from georeg.io.query import open_query
+    from georeg.register.prior import check_prior
 
     t0 = time.perf_counter()
+    try:
+        check_prior(prior)
+    except ValueError as exc:
+        raise InputError(image, f"queries prior: {exc}", "see config/README.md") from None
     cube = open_query(image)
     band, mask, info = select_band(cube, band_spec)
     if not mask.any():  # before writing anything: a failed step leaves no output
@@ -326,6 +333,7 @@ def write_query_band(
         "bands_spec": bands_spec if isinstance(bands_spec, str) else list(bands_spec),
         "pooled_bands": pooled,
         "gsd_m": gsd_m,
+        "prior": prior,
         "stretch": {"percentiles": list(percentiles), **stretch},
         "valid_fraction": valid_fraction,
         "seconds": time.perf_counter() - t0,

@@ -1,7 +1,7 @@
 """Area-based cross-spectral search: CFOG channels correlated by FFT over rotations.
 
 The query (brought to the map's feature GSD) and a map window are turned into oriented-gradient
-channels (georeg.register.refine.cfog, which do not depend on which band made them), both are
+channels (georeg.register.tiepoints.cfog, which do not depend on which band made them), both are
 shrunk so that the query is at most ``max_side`` pixels, and the query is correlated with the
 window by FFT at every rotation step. The peak is judged against the distribution of every other
 rotation and offset: a robust z-score (median / MAD of all scores) turned into an a-contrario
@@ -11,18 +11,14 @@ number of false alarms with a Gaussian tail, counted over all rotations and offs
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass
-from typing import Any
 
 import cv2
 import numpy as np
 import scipy.fft as sfft
 from scipy.stats import norm
 
-from georeg.register import acceptance, crossspectral, matching
-from georeg.register.refine import cfog
-from georeg.register.search import MapSource, QueryFeatures
+from georeg.register.tiepoints import cfog
 
 
 @dataclass
@@ -224,20 +220,6 @@ def dense_search(
                        peak / second if second > 0 else math.inf, tests, others)  # fmt: skip
 
 
-DENSE_DEFAULTS: dict[str, Any] = {
-    "enabled": False,
-    "step_deg": 10.0,
-    "max_side": 96,
-    "radius_px": 24.0,
-    "max_windows": 3,
-}
-
-
-def dense_conf(reg_conf: dict[str, Any] | None) -> dict[str, Any]:
-    """``register.dense`` with defaults."""
-    return {**DENSE_DEFAULTS, **((reg_conf or {}).get("dense") or {})}
-
-
 def window_u8(gray: np.ndarray, levels: tuple[float, float] | None = None) -> np.ndarray:
     """A float map window (NaN = nodata) stretched to uint8 1..255, 0 = nodata: its own 1 and
     99 percentiles to 1 and 255, or the given ``levels`` (lo, hi; e.g. a whole map's, for one
@@ -251,85 +233,3 @@ def window_u8(gray: np.ndarray, levels: tuple[float, float] | None = None) -> np
         np.uint8
     )
     return out
-
-
-def dense_register(
-    q_u8: np.ndarray,
-    qf: QueryFeatures,
-    q_gsd: float,
-    win: np.ndarray,
-    win_to_map: np.ndarray,
-    source: MapSource,
-    conf: dict[str, Any],
-    seed: int = 0,
-    n_windows: int = 1,
-) -> dict[str, Any]:
-    """Dense search of the query in one map window, then a guided feature re-match around the
-    peak (radius ``radius_px`` feature px, then 8), fitted and decided like any candidate.
-
-    ``q_u8``: the query band (or bands, the first used); ``win``: the window (uint8, 0 = nodata); ``win_to_map``: 3 x 3, window pixel centre
-    (col, row) -> map (x, y); ``q_gsd``: query GSD in map units. The NFA counts every rotation
-    step and every disc-sized place of the ``n_windows`` windows searched.
-    """
-    t0 = time.perf_counter()
-    dc = dense_conf(conf)
-    win_px = float(np.sqrt(abs(np.linalg.det(win_to_map[:2, :2]))))
-    rec: dict[str, Any] = {"method": "dense", "accepted": False, "homography": None, "inliers": 0}
-    q0 = q_u8 if q_u8.ndim == 2 else q_u8[0]  # several bands: the first
-    r = dense_search(q0, q_gsd / win_px, win, float(dc["step_deg"]), int(dc["max_side"]))
-    if r is None:
-        rec.update(reason="no overlap", seconds=time.perf_counter() - t0)
-        return rec
-    rec.update(angle_deg=r.angle_deg, dense_z=r.z, dense_log10_nfa=r.log10_nfa,
-               dense_peak_ratio=r.second_ratio)  # fmt: skip
-    H = win_to_map @ r.S
-    g = source.gsd_m
-    corners = matching.apply_h(H, np.array([[0, 0], [qf.width, 0], [0, qf.height],
-                                            [qf.width, qf.height]], float))  # fmt: skip
-    pad = float(dc["radius_px"]) * g
-    bounds = (corners[:, 0].min() - pad, corners[:, 1].min() - pad,
-              corners[:, 0].max() + pad, corners[:, 1].max() + pad)  # fmt: skip
-    ids = source.features_in(bounds)
-    if len(ids) < 8 or len(qf) < 4:
-        rec.update(reason="too few features", seconds=time.perf_counter() - t0)
-        return rec
-    mxy, mdesc = source.take(ids)
-    knn = matching.knn2(mdesc)
-    q_xy, q_desc, q_resp = qf.xy, qf.desc, qf.response
-    if crossspectral.matcher_conf(conf).get("polarity") == "both":
-        q_xy, q_desc, q_resp = crossspectral.add_polarity(q_xy, q_desc, q_resp)
-    ratio = float(crossspectral.matcher_conf(conf).get("guided_ratio", 0.8))
-    h_w, w_w = win.shape
-    win_area = h_w * w_w * (win_px / g) ** 2
-    n_rot = int(round(360.0 / float(dc["step_deg"])))
-    best = None
-    for radius_px in (float(dc["radius_px"]), 8.0):
-        disc = math.pi * radius_px**2
-        gm = crossspectral.guided_matches(q_xy, q_desc, H, mxy, mdesc, radius_px * g, ratio, knn)
-        if len(gm) < 4:
-            break
-        fit = matching.fit_homography(gm.q_xy, gm.m_xy, g, conf.get("ransac", {}), seed)
-        if fit.H is None:
-            break
-        n_tests = n_rot * max(1, int(math.ceil(win_area / disc))) * max(1, n_windows)
-        dec = acceptance.decide(
-            fit.H, fit.residual_px, fit.n_inliers, disc, qf.width, qf.height, q_gsd,
-            conf.get("acceptance", {}), n_candidates=n_tests, inlier_q_xy=gm.q_xy[fit.inliers],
-        )  # fmt: skip
-        if best is not None and (not dec["accepted"] or fit.n_inliers <= best[1].n_inliers):
-            break  # the refinement pass only replaces an accepted fit by a better one
-        best = (gm, fit, dec)
-        H = fit.H
-        if not dec["accepted"]:
-            break
-    if best is not None:
-        gm, fit, dec = best
-        inl = fit.inliers
-        rec.update(
-            accepted=bool(dec["accepted"]), homography=fit.H.tolist(), inliers=fit.n_inliers,
-            matches=len(gm), residual_px=fit.rms_px, log10_nfa=dec.get("log10_nfa"),
-            reason=dec.get("reason", ""), region=[float(v) for v in bounds],
-            inlier_query_xy=gm.q_xy[inl].tolist(), inlier_map_xy=gm.m_xy[inl].tolist(),
-        )  # fmt: skip
-    rec["seconds"] = time.perf_counter() - t0
-    return rec

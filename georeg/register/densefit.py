@@ -23,6 +23,15 @@ import numpy as np
 from georeg.register.geolocation import apply_h, ground_px
 from georeg.register.matching import similarity_lsq
 from georeg.register.model_choice import one_se_choice
+from georeg.register.tiepoints import (
+    cfog,
+    consistent,
+    grid_points,
+    measure_shifts,
+    query_cfog,
+    window_centroid,
+)
+from georeg.register.tiepoints import merged as tiepoint_settings
 
 log = logging.getLogger(__name__)
 
@@ -196,16 +205,6 @@ def dense_fit(
     the tie-point settings (grid, window, search, scores: ``georeg.register.refine``).
 
     Returns the homography to use (the refit, or ``H`` when the guard keeps it) and a report."""
-    from georeg.register.refine import (
-        cfog,
-        consistent,
-        grid_points,
-        measure_shifts,
-        query_cfog,
-        window_centroid,
-    )
-    from georeg.register.refine import merged as refine_merged
-
     t0 = time.perf_counter()
     c = merged(conf)
     requested = str(c["model"])
@@ -215,7 +214,7 @@ def dense_fit(
         raise ValueError(f"unknown global_fit auto_rule {c['auto_rule']!r} (gain | one_se)")
     if requested == "auto":  # iterate with the affine map, then choose by blocked CV
         c["model"] = "affine"
-    rc = refine_merged(refine_conf)
+    rc = tiepoint_settings(refine_conf)
     H0 = np.asarray(H, np.float64)
     h, w = band.shape[-2:]
     qf, qvalid = query_cfog(band, int(rc["orientations"]), float(rc["cfog_sigma_px"]))

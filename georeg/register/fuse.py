@@ -1,22 +1,33 @@
-"""Fuse the parts' winners: check agreement, re-match the whole query in the winning neighbourhood.
+"""The fuse_parts step: the sources of candidates, the verifier's terms, the fusion.
 
-The paper's two halves came out slightly misaligned; here the full query is re-matched in the
-neighbourhood the best part found and one homography is estimated from all inliers.
+The search_part jobs ran the first source (the features of each along-track part against the
+index's candidate regions, ``georeg.register.search``). Here the remaining sources run in
+``SOURCES`` order, each only while no candidate is accepted; each gets the same
+``(QueryInput, MapView, parts, conf)`` and returns the parts with its accepted candidate added
+and a record. The accepted candidates are fused (the full query re-matched in the neighbourhood
+the best one found, one homography from all inliers: the paper's two halves came out slightly
+misaligned), then checked by the verifier's dense terms (CFOG null scan, orthophoto, LiDAR).
+``registration.json`` says which sources ran and which one was accepted (``sources``).
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from itertools import combinations
 from typing import Any
 
 import numpy as np
 
-from georeg.register import lidar_check, matching, ortho_check
+from georeg.register import lidar_check, matching, ortho_check, small
+from georeg.register.prior import prior_bounds, prior_record
 from georeg.register.search import (
     MapSource,
+    MapView,
     QueryFeatures,
+    QueryInput,
+    clip_to_prior,
     index_rank,
     query_features,
     search_count,
@@ -24,7 +35,6 @@ from georeg.register.search import (
     search_part,
     verify,
 )
-from georeg.register.small import null_check, small_fallback
 
 log = logging.getLogger(__name__)
 
@@ -207,90 +217,98 @@ def whole_query_fallback(
     return [*parts, whole], plan
 
 
-def candidate_windows(parts: list[dict[str, Any]], n: int) -> list[tuple[float, ...]]:
-    """The first ``n`` distinct candidate regions the searches tried: the whole query's searches
-    first, then the parts', each in the order tried; regions overlapping a kept one by more
-    than half of the smaller are dropped."""
-    order = sorted(parts, key=lambda p: (not p.get("whole_query"), p["part"]))
-    out: list[tuple[float, ...]] = []
-    for p in order:
-        for c in p.get("candidates") or []:
-            b = tuple(float(v) for v in c["bounds"])
-            if any(_overlap(b, o) > 0.5 for o in out):
-                continue
-            out.append(b)
-            if len(out) >= n:
-                return out
-    return out
+def whole_query_source(
+    q: QueryInput, view: MapView, parts: list[dict[str, Any]], conf: dict[str, Any]
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Source ``whole_query``: ``whole_query_fallback``; its record holds the split ``plan``."""
+    n0 = len(parts)
+    parts, plan = whole_query_fallback(q.features, view.source, parts, conf, q.gsd, q.seed)
+    ran = plan.get("whole_query_searched") == "after every part failed"
+    tried = sum(p.get("candidates_tried", 0) for p in parts[n0:])
+    return parts, {"ran": ran, "candidates": tried, "plan": plan}
 
 
-def _overlap(a: tuple[float, ...], b: tuple[float, ...]) -> float:
-    ix = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    iy = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    small = min((a[2] - a[0]) * (a[3] - a[1]), (b[2] - b[0]) * (b[3] - b[1]))
-    return ix * iy / small if small > 0 else 0.0
+Source = Callable[
+    [QueryInput, MapView, list[dict[str, Any]], dict[str, Any]],
+    tuple[list[dict[str, Any]], dict[str, Any]],
+]
+
+#: the sources of candidates after the parts' feature search, in order; each runs only while no
+#: candidate is accepted. A source is one function with this signature: it returns the parts
+#: with its accepted candidate appended (a part record) and its own record (``ran``, and
+#: ``candidates`` tried when it ran). Adding a source is one entry here.
+SOURCES: tuple[tuple[str, Source], ...] = (
+    ("whole_query", whole_query_source),
+    ("small_windows", small.window_source),
+    ("cfog_null", small.null_source),
+)
 
 
-def dense_fallback(
-    u8: np.ndarray,
-    full: QueryFeatures,
-    source: MapSource,
+def run_sources(
+    q: QueryInput, view: MapView, parts: list[dict[str, Any]], conf: dict[str, Any]
+) -> tuple[list[dict[str, Any]], dict[str, Any], list[dict[str, Any]], dict[str, float]]:
+    """After the parts' feature search, every source of ``SOURCES`` in turn while nothing is
+    accepted (the whole-query search also records the split plan).
+
+    Returns the parts (one more per accepted source), the split record of registration.json
+    (the plan; ``small``: the small-query sources' records), the ``sources`` record (name,
+    candidates tried, accepted, seconds of each source that ran) and their timings."""
+    ran = [{"name": "features", "accepted": any(p.get("accepted") for p in parts),
+            "candidates": int(sum(p.get("candidates_tried", 0) for p in parts))}]  # fmt: skip
+    recs: dict[str, dict[str, Any]] = {}
+    timings: dict[str, float] = {}
+    for name, fn in SOURCES:
+        if any(p.get("accepted") for p in parts) and name != "whole_query":
+            recs[name] = {"ran": False, "reason": "a search was accepted"}
+            continue
+        t0 = time.perf_counter()
+        n0 = len(parts)
+        parts, recs[name] = fn(q, view, parts, conf)
+        if recs[name].get("ran"):
+            timings[name] = time.perf_counter() - t0
+            ran.append({"name": name, "accepted": any(p.get("accepted") for p in parts[n0:]),
+                        "candidates": int(recs[name].get("candidates", 0)),
+                        "seconds": round(timings[name], 3)})  # fmt: skip
+    split = recs["whole_query"]["plan"]
+    split["small"] = dict(recs["small_windows"])
+    if recs["cfog_null"].get("ran"):
+        split["small"]["cfog_null"] = recs["cfog_null"]
+    return parts, split, ran, timings
+
+
+def decide(
+    q: QueryInput,
+    view: MapView,
     parts: list[dict[str, Any]],
     conf: dict[str, Any],
-    gsd_m: float | None,
-    read_window: Any,
-    seed: int = 0,
-) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """When no search accepted anything: the dense CFOG search (georeg.register.dense) in the
-    first ``register.dense.max_windows`` candidate regions, each followed by a guided feature
-    re-match; the first accepted one becomes one more (whole-query) part.
-
-    ``read_window(bounds)`` -> (float gray window, NaN = nodata; 3 x 3 window pixel centre ->
-    map x, y) or None. Returns the parts and a record of what was tried.
-    """
-    from georeg.register.dense import dense_conf, dense_register, window_u8
-
-    dc = dense_conf(conf)
-    if any(p.get("accepted") for p in parts):
-        return parts, {"ran": False, "reason": "a search was accepted"}
-    if not dc["enabled"] or not gsd_m:
-        why = "disabled" if not dc["enabled"] else "the query GSD is unknown"
-        return parts, {"ran": False, "reason": why}
-    windows = candidate_windows(parts, int(dc["max_windows"]))
-
-    def register(k: int, gray: np.ndarray, A: np.ndarray, b: tuple[float, ...]) -> dict[str, Any]:
-        return dense_register(u8, full, gsd_m, window_u8(gray), A, source, conf, seed + k,
-                              len(windows))  # fmt: skip
-
-    return first_accepted_window(windows, read_window, register, parts, full.height, "dense",
-                                 ("angle_deg", "dense_z", "dense_log10_nfa"))  # fmt: skip
-
-
-def first_accepted_window(windows: list[tuple[float, ...]], read_window: Any, register: Any,
-                          parts: list[dict[str, Any]], height: int, flag: str,
-                          keys: tuple[str, ...] = (), grow: float = 0.0,
-                          ) -> tuple[list[dict[str, Any]], dict[str, Any]]:  # fmt: skip
-    """A fallback's loop over candidate windows: each window (grown by ``grow`` map units) read
-    by ``read_window``, then ``register(k, gray, A, bounds)``; the first accepted record becomes
-    one more whole-query part, marked ``flag``. Returns the parts and the record of the windows
-    tried (their bounds, acceptance, inliers, NFA, reason, seconds and ``keys``)."""
-    tried = []
-    for k, b in enumerate(windows):
-        got = read_window((b[0] - grow, b[1] - grow, b[2] + grow, b[3] + grow))
-        if got is None:
-            continue
-        rec = register(k, *got, b)
-        rec["bounds"] = [float(v) for v in b]
-        tried.append({k2: rec.get(k2) for k2 in ("bounds", "accepted", "inliers", "matches",
-                      "log10_nfa", *keys, "reason", "seconds")})  # fmt: skip
-        log.info("%s search in window %d: %s inliers, log10 NFA %s -> %s", flag, k,
-                 rec.get("inliers"), rec.get("log10_nfa"),
-                 "ACCEPT" if rec["accepted"] else rec.get("reason"))  # fmt: skip
-        if rec["accepted"]:
-            part = {**rec, "part": len(parts), "rows": [0, height], "whole_query": True,
-                    flag: True, "candidates_tried": k + 1, "candidates": []}  # fmt: skip
-            return [*parts, part], {"ran": True, "windows": tried, "accepted_window": k}
-    return parts, {"ran": True, "windows": tried, "accepted_window": None}
+    dsm: str | None = None,
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Sources (``run_sources``), fusion (``fuse``), then the verifier's dense terms on the
+    fused fit: the CFOG null scan (``small.null_check``, may replace a small query's fit), the
+    orthophoto (``ortho_check``) and the map's elevation (``lidar_check``; ``dsm`` None: not
+    run). Returns the fused result and the record: ``split``, ``parts``, ``sources``, the
+    terms' records (None when not run) and ``timings_s``."""
+    parts, split, ran, timings = run_sources(q, view, parts, conf)
+    t1 = time.perf_counter()
+    fused = fuse(q.features, view.source, parts, conf, q.gsd, q.seed)
+    timings["fuse_match"] = time.perf_counter() - t1
+    t1 = time.perf_counter()
+    fused, nrec = small.null_check(q.u8, fused, view.source, conf, q.gsd, view.read_window,
+                                   split.get("small"))  # fmt: skip
+    if nrec is not None:
+        timings["null_check"] = time.perf_counter() - t1
+    t1 = time.perf_counter()
+    fused, orec = ortho_check.apply(q.u8, fused, view.read_window, conf)
+    if orec is not None and orec.get("seconds") is not None:
+        timings["ortho_check"] = time.perf_counter() - t1
+    H = None if fused.get("homography") is None else np.array(fused["homography"])
+    t1 = time.perf_counter()
+    lidar = lidar_check.run_check(q.u8[0] if q.u8.ndim == 3 else q.u8, H, dsm, conf)
+    if lidar is not None:
+        timings["lidar_check"] = time.perf_counter() - t1
+        fused = lidar_check.veto(fused, lidar)
+    return fused, {"split": split, "parts": parts, "sources": ran, "null_check": nrec,
+                   "ortho_check": orec, "lidar_check": lidar, "timings_s": timings}  # fmt: skip
 
 
 def register_query(
@@ -301,24 +319,24 @@ def register_query(
     factors: list[float],
     seed: int = 0,
     read_window: Any = None,
+    prior: Any = None,
 ) -> dict[str, Any]:
-    """The workflow's search_part jobs and fuse_parts in one process: split plan, every part,
-    the whole-query fallback, the small-query and dense fallbacks (when ``read_window`` is
-    given, see ``georeg.register.small.small_fallback`` and ``dense_fallback``), fusion. Returns the fused result with ``split`` and ``parts``."""
-    h = u8.shape[-2]
+    """The workflow's search_part jobs and fuse_parts in one process (the library's entry point):
+    split plan, every part, the other sources (the small-query ones when ``read_window`` is
+    given), fusion and the verifier's terms (``decide``). ``prior``: an approximate location
+    (``georeg.register.prior``: ``{"centre": [x, y], "radius_m": r}`` or ``{"box": [x0, y0, x1,
+    y1]}``, ``"crs": "map"`` (default) or ``"lonlat"``; or map bounds): the map the sources see
+    is clipped to it. Returns the fused result with ``split``, ``parts``, ``sources``, the
+    terms' records and ``prior``."""
+    bounds = prior_bounds(prior, source.crs_wkt)
+    h, w = u8.shape[-2:]
+    view = MapView(clip_to_prior(source, bounds, w, h, gsd_m, factors), read_window)
     full = query_features(u8, (0, h), factors, source.features_conf)
     n = int(conf.get("parts", 2))
-    parts = [search_one_part(u8, k, source, conf, gsd_m, factors, seed, full) for k in range(n)]
-    parts, split = whole_query_fallback(full, source, parts, conf, gsd_m, seed)
-    if read_window is not None:
-        parts, split["small"] = small_fallback(u8, full, source, parts, conf, gsd_m, read_window,
-                                               seed)  # fmt: skip
-        parts, split["dense"] = dense_fallback(u8, full, source, parts, conf, gsd_m, read_window,
-                                               seed)  # fmt: skip
-    fused = fuse(full, source, parts, conf, gsd_m, seed)
-    fused, nrec = null_check(u8, fused, source, conf, gsd_m, read_window, split.get("small"))
-    fused, orec = ortho_check.apply(u8, fused, read_window, conf)
-    return {**fused, "split": split, "parts": parts, "null_check": nrec, "ortho_check": orec}
+    parts = [search_one_part(u8, k, view.source, conf, gsd_m, factors, seed, full)
+             for k in range(n)]  # fmt: skip
+    fused, rec = decide(QueryInput(u8, full, gsd_m, factors, seed), view, parts, conf)
+    return {**fused, **rec, "prior": prior_record(prior, bounds)}
 
 
 def run_fuse_parts(
@@ -335,10 +353,11 @@ def run_fuse_parts(
     out_geoloc: str,
     ortho: str | None = None,
 ) -> dict[str, Any]:
-    """Rule fuse_parts: fuse, write geolocation.tif (all NaN when not found) and registration.json.
+    """Rule fuse_parts: the other sources, fusion and the verifier's terms (``decide``); write
+    geolocation.tif (all NaN when not found) and registration.json.
 
-    ``ortho``: the orthophoto mosaic, read for the small-query and dense fallbacks when no search
-    was accepted and for the check of an accepted fit (``georeg.register.ortho_check``)."""
+    ``ortho``: the orthophoto mosaic, read by the small-query sources and the orthophoto check.
+    The query's location prior (band.json ``prior``) clips the map as in the search_part jobs."""
     import json
     from pathlib import Path
 
@@ -351,6 +370,7 @@ def run_fuse_parts(
     meta = json.loads(Path(band_json).read_text())
     parts = sorted((json.loads(Path(p).read_text()) for p in part_jsons), key=lambda p: p["part"])
     source = load_source(index_path, grid_path)
+    bounds = prior_bounds(meta.get("prior"), source.crs_wkt, band_json)
     u8 = read_query_bands(band_tif)  # every pooled band, the primary first
     h, w = u8.shape[-2:]
     gsd = gsd_in_map_units(meta.get("gsd_m"), source.crs_wkt)
@@ -358,42 +378,17 @@ def run_fuse_parts(
         "query_band": meta.get("seconds"),
         "search_parts": {str(p["part"]): p.get("seconds") for p in parts},
     }
-    fused: dict[str, Any]
     t1 = time.perf_counter()
     factors = feature_scales(gsd, source.gsd_m, reg_conf.get("unknown_gsd_factors", [1.0]))
+    view = MapView(clip_to_prior(source, bounds, w, h, gsd, factors),
+                   None if not ortho else ortho_window_reader(ortho))  # fmt: skip
     full = query_features(u8, (0, h), factors, source.features_conf)
     timings["fuse_features"] = time.perf_counter() - t1
-    t1 = time.perf_counter()
-    parts, split = whole_query_fallback(full, source, parts, reg_conf, gsd, seed)
-    if split.get("whole_query_searched") == "after every part failed":
-        timings["whole_query_search"] = time.perf_counter() - t1
-    t1 = time.perf_counter()
-    reader = None if not ortho else ortho_window_reader(ortho)
-    parts, split["small"] = small_fallback(u8, full, source, parts, reg_conf, gsd, reader, seed)
-    if split["small"].get("ran"):
-        timings["small_search"] = time.perf_counter() - t1
-    t1 = time.perf_counter()
-    parts, split["dense"] = dense_fallback(u8, full, source, parts, reg_conf, gsd, reader, seed)
-    if split["dense"].get("ran"):
-        timings["dense_search"] = time.perf_counter() - t1
-    t1 = time.perf_counter()
-    fused = fuse(full, source, parts, reg_conf, gsd, seed)
-    timings["fuse_match"] = time.perf_counter() - t1
-    t1 = time.perf_counter()
-    fused, nrec = null_check(u8, fused, source, reg_conf, gsd, reader, split.get("small"))
-    if nrec is not None:
-        timings["null_check"] = time.perf_counter() - t1
-    t1 = time.perf_counter()
-    fused, orec = ortho_check.apply(u8, fused, reader, reg_conf)
-    if orec is not None and orec.get("seconds") is not None:
-        timings["ortho_check"] = time.perf_counter() - t1
+    fused, rec = decide(QueryInput(u8, full, gsd, factors, seed), view, parts, reg_conf, dsm)
+    source = view.source
+    parts = rec["parts"]
+    timings.update(rec["timings_s"])
     H = None if fused.get("homography") is None else np.array(fused["homography"])
-    t1 = time.perf_counter()
-    lidar = lidar_check.run_check(u8[0], H, dsm, reg_conf)
-    if lidar is not None:
-        timings["lidar_check"] = time.perf_counter() - t1
-        fused = lidar_check.veto(fused, lidar)
-        H = None if fused.get("homography") is None else H
     t1 = time.perf_counter()
     geo = write_geolocation(out_geoloc, H, w, h, dsm, source.crs_wkt)
     timings["geolocation"] = time.perf_counter() - t1
@@ -421,13 +416,14 @@ def run_fuse_parts(
         "map_px_m": map_px,
         "feature_gsd_m": source.gsd_m,
         "candidates_tried": int(sum(p.get("candidates_tried", 0) for p in parts)),
-        "split": split,
+        "prior": prior_record(meta.get("prior"), bounds),
+        "sources": rec["sources"],
+        "split": rec["split"],
         "parts": [
             {
                 "part": p["part"],
                 "rows": p["rows"],
                 "whole_query": p["rows"] == [0, h],
-                "dense": bool(p.get("dense")),
                 "small": bool(p.get("small")),
                 "skipped": bool(p.get("skipped")),
                 "accepted": p["accepted"],
@@ -445,12 +441,9 @@ def run_fuse_parts(
     }
     if fused["status"] != "registered":
         reg["reason"] = fused.get("reason")
-    if nrec is not None:
-        reg["null_check"] = nrec
-    if orec is not None:
-        reg["ortho_check"] = orec
-    if lidar is not None:
-        reg["lidar_check"] = lidar
+    for term in ("null_check", "ortho_check", "lidar_check"):
+        if rec[term] is not None:
+            reg[term] = rec[term]
     if truth:
         t1 = time.perf_counter()
         reg["evaluation"] = evaluate(H, truth, map_px)
@@ -464,7 +457,7 @@ def run_fuse_parts(
 def ortho_window_reader(ortho: str) -> Any:
     """bounds -> (gray window, NaN = nodata; 3 x 3 window pixel centre -> map x, y) or None."""
     from georeg.io.errors import InputError
-    from georeg.register.refine import read_map_gray
+    from georeg.register.tiepoints import read_map_gray
 
     def read(b: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray] | None:
         try:

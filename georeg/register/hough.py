@@ -86,7 +86,7 @@ def hough_regions(
 
     ``map_gsd``: map units per feature pixel; ``diag``: the part's ground diagonal (map units).
     """
-    from georeg.register.crossspectral import flip_polarity
+    from georeg.register.matching import flip_polarity
 
     c = {**DEFAULTS, **(conf or {})}
     n = len(qf)

@@ -24,6 +24,7 @@ from georeg.io.raster import open_raster
 from georeg.io.video import frame_images, jpeg_cut_short
 from georeg.map import pdal_points
 from georeg.register.band import parse_band_spec, resolve_band
+from georeg.register.prior import check_prior, prior_bounds
 
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".webm"}
 
@@ -44,6 +45,7 @@ class _Checker:
 
     def __init__(self, generated: str | None) -> None:
         self.problems: list[str] = []
+        self.map_box: tuple[str, tuple[float, ...]] | None = None  # (CRS wkt, bounds) of the map
         self.prefix = Path(generated).as_posix().rstrip("/") + "/" if generated else None
 
     def made(self, path: Any) -> bool:
@@ -98,6 +100,10 @@ class _Checker:
                 continue
             try:
                 with open_raster(path) as ds:
+                    if ds.crs is not None and (
+                        map_crs is None or pyproj.CRS(ds.crs.to_wkt()) == pyproj.CRS(map_crs)
+                    ):
+                        self._grow_map_box(ds.crs.to_wkt(), tuple(ds.bounds))
                     if not map_crs and not ds.crs.is_projected:
                         lon, lat = _centre_lonlat(ds)
                         self.add(
@@ -114,6 +120,13 @@ class _Checker:
             except GeoregError as exc:
                 self.add(f"map.dem: {exc}")
 
+    def _grow_map_box(self, crs: str, b: tuple[float, ...]) -> None:
+        if self.map_box is None:
+            self.map_box = (crs, b)
+        elif self.map_box[0] == crs:
+            o = self.map_box[1]
+            self.map_box = (crs, (min(o[0], b[0]), min(o[1], b[1]), max(o[2], b[2]), max(o[3], b[3])))
+
     def queries(self, queries: Mapping[str, Any]) -> None:
         for name, q in sorted(queries.items()):
             key = f"queries.{name}"
@@ -127,6 +140,26 @@ class _Checker:
                 v = q.get(opt)
                 if v and not self.made(v) and not Path(v).exists():
                     self.add(f"{key}.{opt}: {v}: file not found")
+            if q.get("prior") is not None:
+                self.prior(key, q["prior"])
+
+    def prior(self, key: str, prior: Any) -> None:
+        """A query's location prior: well formed, and overlapping the map (when it is known)."""
+        try:
+            check_prior(prior)
+        except ValueError as exc:
+            self.add(f"{key}.{exc}" if str(exc).startswith("prior") else f"{key}.prior: {exc}")
+            return
+        if self.map_box is None:
+            return
+        crs, box = self.map_box
+        try:
+            b = prior_bounds(prior, crs)
+        except ValueError as exc:
+            self.add(f"{key}.prior: {exc}")
+            return
+        if b is None or b[0] > box[2] or b[2] < box[0] or b[1] > box[3] or b[3] < box[1]:
+            self.add(f"{key}.prior: {b} does not overlap the map ({box}, {crs[:40]}...)")
 
     def frames(self, frames: Mapping[str, Any]) -> None:
         from PIL import Image, UnidentifiedImageError

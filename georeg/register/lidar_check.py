@@ -3,9 +3,9 @@
 Building and terrain edges in a LiDAR DSM (or nDSM) show up in any band of the query. Given the
 query band and a query -> map homography H, both images are shrunk so that the query is at most
 ``max_side`` pixels across, the elevation layer is rendered into that query geometry through H,
-and both become CFOG structure channels (:func:`georeg.register.refine.cfog`, which ignore
+and both become CFOG structure channels (:func:`georeg.register.tiepoints.cfog`, which ignore
 contrast reversals). Tie points are measured as in the refinement
-(:func:`georeg.register.refine.measure_shifts`: windows of ``window_px`` on a ``grid_step_px``
+(:func:`georeg.register.tiepoints.measure_shifts`: windows of ``window_px`` on a ``grid_step_px``
 grid, integer shifts up to ``search_px``): a point is *coherent* when its peak score is at least
 ``min_score``, not on the search border, and its shift lies within ``coherent_px`` of the median
 shift. The same measure is taken at four perturbed hypotheses (H moved by ``null_shift`` x
@@ -39,7 +39,7 @@ import numpy as np
 
 from georeg.register.dense import _shrink
 from georeg.register.geolocation import apply_h, ground_px
-from georeg.register.refine import MapImage, cfog, grid_points, measure_shifts
+from georeg.register.tiepoints import MapImage, cfog, grid_points, measure_shifts
 
 log = logging.getLogger(__name__)
 
@@ -175,7 +175,7 @@ def read_elevation(
     grown by what the perturbed hypotheses and the tie-point search reach; None when the
     footprint misses the raster."""
     from georeg.io.errors import InputError
-    from georeg.register.refine import read_map_gray
+    from georeg.register.tiepoints import read_map_gray
 
     c = {**DEFAULTS, **(conf or {})}
     h, w = shape[-2:]

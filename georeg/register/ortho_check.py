@@ -5,8 +5,8 @@ can pass the a-contrario and plausibility tests at the right place yet be distor
 fit through 6 inliers, 10-25 map px off towards the footprint's edges). Here the orthophoto is
 rendered into the query geometry through H at about one map pixel per working pixel (the query
 resampled by its ground pixel size, at most ``max_side`` pixels across), both images become
-CFOG structure channels (:func:`georeg.register.refine.cfog`, blind to contrast reversals) and
-tie points are measured on a grid (:func:`georeg.register.refine.measure_shifts`). A tie point
+CFOG structure channels (:func:`georeg.register.tiepoints.cfog`, blind to contrast reversals) and
+tie points are measured on a grid (:func:`georeg.register.tiepoints.measure_shifts`). A tie point
 *supports* H when its peak NCC is at least ``min_score``, its peak is not on the search border
 and its shift is within ``support_px`` working px of zero, i.e. where H puts it.
 
@@ -18,10 +18,9 @@ spatially correlated, docs/BENCHMARKS.md "Cross-spectral matching").
 In the fuse step (:func:`apply`, fits with at most ``max_inliers`` inliers) the fit is first
 refitted to these tie points (:func:`refit`: :func:`georeg.register.densefit.dense_fit`, affine,
 taken when its blocked CV residual is lower); the refit is checked, and when it does not agree
-the feature fit is checked too (:func:`verify`). A refit that agrees replaces the feature fit
-(``replace``): the support check alone either passes a distorted fit (a band of the footprint
-through its inliers is right) or, made stricter, rejects right fits that are a few pixels off at
-the edges, which the refit corrects (docs/BENCHMARKS.md "Dense check of accepted fits").
+the feature fit is checked too (:func:`verify`). The check is a term of the verifier's record:
+it never changes the fit (a refit that replaced the feature fit was measured and not kept,
+docs/BENCHMARKS.md "Dense check of accepted fits").
 
 Outcome (``ortho_check.outcome`` in registration.json):
 
@@ -45,7 +44,7 @@ import numpy as np
 
 from georeg.register.dense import _shrink
 from georeg.register.geolocation import apply_h, ground_px
-from georeg.register.refine import MapImage, cfog, grid_points, measure_shifts
+from georeg.register.tiepoints import MapImage, cfog, grid_points, measure_shifts
 
 log = logging.getLogger(__name__)
 
@@ -66,7 +65,6 @@ DEFAULTS: dict[str, Any] = {
     "refit": True,  # refit the fit to dense tie points first (georeg.register.densefit)
     "refit_iterations": 6,  # measure -> affine fit passes of the refit
     "refit_min_gain": 0.1,  # the refit is taken when its blocked CV residual is this much lower
-    "replace": False,  # a refit that agrees replaces the feature fit in the fused result
 }
 MODES = ("off", "record", "reject")
 
@@ -254,8 +252,7 @@ def due(fused: dict[str, Any], c: dict[str, Any]) -> bool:
 
 def apply(q_u8: np.ndarray, fused: dict[str, Any], read_window: Any,
           reg_conf: dict[str, Any] | None) -> tuple[dict[str, Any], dict[str, Any] | None]:  # fmt: skip
-    """The fuse step's check of a registered result: refit, verify, replace (``replace``) and,
-    with ``mode: reject``, turn a fit that disagrees into ``not_found``. ``q_u8``: the query
+    """The fuse step's check of a registered result: refit and verify and, with ``mode: reject``, turn a fit that disagrees into ``not_found``. ``q_u8``: the query
     band(s), the primary first; ``read_window``: the orthophoto window reader (None: skipped).
     Returns the (possibly changed) fused result and the record (None when ``mode: off`` or
     nothing was registered)."""
@@ -273,17 +270,11 @@ def apply(q_u8: np.ndarray, fused: dict[str, Any], read_window: Any,
     if img is None:
         rec["reason"] = "no orthophoto over the footprint"
         return fused, rec
-    Hu, got = verify(band, H, img, c)
+    _, got = verify(band, H, img, c)
     rec.update(got)
-    replaced = bool(c["replace"]) and got["outcome"] == "agrees" and (got.get("refit") or {}).get("kept")
-    rec["replaced"] = bool(replaced)
-    log.info("ortho check: %s, supported %.3f (x%.1f the moved hypotheses), refit %s",
-             rec["outcome"], rec.get("supported", 0.0), rec.get("gain", 0.0),
-             "kept" if replaced else "not kept")  # fmt: skip
-    out = dict(fused)
-    if replaced:
-        out.update(homography=np.asarray(Hu).tolist(), feature_homography=fused["homography"])
-    return veto(out, rec), rec
+    log.info("ortho check: %s, supported %.3f (x%.1f the moved hypotheses)",
+             rec["outcome"], rec.get("supported", 0.0), rec.get("gain", 0.0))  # fmt: skip
+    return veto(fused, rec), rec
 
 
 def veto(fused: dict[str, Any], rec: dict[str, Any] | None) -> dict[str, Any]:

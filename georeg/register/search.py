@@ -16,7 +16,8 @@ from typing import Any
 import numpy as np
 
 from georeg.index.features import dequantize, detect_and_describe, resample
-from georeg.register import acceptance, crossspectral, matching, model_choice
+from georeg.register import acceptance, matching, model_choice
+from georeg.register.prior import prior_bounds, prior_record
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +38,7 @@ class MapSource:
     index: Any = None  # georeg.index.map_index.MapIndex when loaded from disk
     angle: np.ndarray | None = None  # (n,) keypoint orientation (degrees), plain arrays only
     scale: np.ndarray | None = None  # (n,) keypoint diameter in map units, plain arrays only
+    clip: Bounds | None = None  # a location prior: only the map inside these bounds is seen
     _nn: Any = field(default=None, init=False, repr=False, compare=False)  # PlainNearest cache
 
     @classmethod
@@ -53,18 +55,30 @@ class MapSource:
         """The feature settings the map was built with (the query must use the same)."""
         return None if self.index is None else self.index.meta.get("features_conf")
 
+    def clipped(self, bounds: Bounds) -> MapSource:
+        """The same map seen only inside ``bounds`` (a location prior); shares every array."""
+        out = replace(self, clip=tuple(float(v) for v in bounds))
+        out._nn = self._nn
+        return out
+
     @property
     def bounds(self) -> Bounds:
-        """Extent of all map features."""
+        """Extent of all map features (within ``clip``)."""
         if self.index is not None:
             b = np.asarray(self.index.tile_bounds, np.float64)
             b = b[np.isfinite(b).all(axis=1)]
-            return (b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max())
-        xy = np.asarray(self.xy)
-        return (*xy.min(axis=0), *xy.max(axis=0))  # type: ignore[return-value]
+            full = (b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max())
+        else:
+            xy = np.asarray(self.xy)
+            full = (*xy.min(axis=0), *xy.max(axis=0))
+        return full if self.clip is None else intersect(full, self.clip)  # type: ignore[return-value]
 
     def features_in(self, bounds: Bounds) -> np.ndarray:
-        """Ids of the map features inside ``bounds``."""
+        """Ids of the map features inside ``bounds`` (and ``clip``)."""
+        if self.clip is not None:
+            bounds = intersect(bounds, self.clip)
+            if bounds[0] > bounds[2] or bounds[1] > bounds[3]:
+                return np.zeros(0, np.int64)
         if self.index is not None:
             return self.index.features_in(bounds)
         xy = np.asarray(self.xy)
@@ -86,6 +100,29 @@ class MapSource:
     def take(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(xy float64, desc float32) of feature ids."""
         return np.asarray(self.xy[ids], np.float64), dequantize(np.asarray(self.desc[ids]))
+
+
+def intersect(a: Bounds, b: Bounds) -> Bounds:
+    """The intersection of two boxes (empty: x0 > x1 or y0 > y1)."""
+    return (max(a[0], b[0]), max(a[1], b[1]), min(a[2], b[2]), min(a[3], b[3]))
+
+
+def clip_to_prior(
+    source: MapSource,
+    prior: Bounds | None,
+    width: int,
+    height: int,
+    gsd_m: float | None,
+    factors: list[float],
+) -> MapSource:
+    """The map a query with a location prior sees: the prior box (where its centre may be)
+    grown by half its ground diagonal (largest assumed GSD when unknown), so that every footprint
+    centred in the box is inside. No prior: the source itself."""
+    if prior is None:
+        return source
+    g = float(gsd_m) if gsd_m else source.gsd_m * max(factors)
+    r = 0.5 * math.hypot(width, height) * g
+    return source.clipped((prior[0] - r, prior[1] - r, prior[2] + r, prior[3] + r))
 
 
 class PlainNearest:
@@ -160,6 +197,30 @@ class QueryFeatures:
 
     def __len__(self) -> int:
         return len(self.xy)
+
+
+@dataclass
+class QueryInput:
+    """What every source of candidates sees of the query: its band(s) (uint8, 0 = nodata; the
+    primary first), the whole query's features, its GSD in map units (None = unknown), the
+    resize factors to the map's feature GSD and the seed."""
+
+    u8: np.ndarray
+    features: QueryFeatures
+    gsd: float | None
+    factors: list[float]
+    seed: int = 0
+
+
+@dataclass
+class MapView:
+    """What every source sees of the map: its features (``MapSource``, clipped to the query's
+    location prior when there is one) and the orthophoto window reader (``read_window(bounds)``
+    -> (float gray, NaN = nodata; 3 x 3 window pixel centre -> map x, y) or None; None = no
+    orthophoto)."""
+
+    source: MapSource
+    read_window: Any = None
 
 
 SPLIT_DEFAULTS: dict[str, Any] = {
@@ -424,31 +485,31 @@ def _hypotheses(
 
     ``paper``: one set, the paper's ratio test (``register.ratio``, stop at Nt). ``vote``:
     both contrast polarities of the query, a loose ratio, keypoint-size agreement and
-    the strongest rotation peaks (georeg.register.crossspectral.rotation_hypotheses); falls back to
+    the strongest rotation peaks (georeg.register.matching.rotation_hypotheses); falls back to
     ``paper`` when the map or the query has no keypoint geometry. With ``guide`` = (H, radius)
     (the fuse stage's re-match around an accepted part), ``vote`` matches every query feature
     among the map features within the radius of H's prediction, with the ratio test among
-    those local candidates (``guided_ratio``, 0.8; georeg.register.crossspectral.guided_matches).
+    those local candidates (``guided_ratio``, 0.8; georeg.register.matching.guided_matches).
     """
-    mc = crossspectral.matcher_conf(conf)
+    mc = matching.matcher_conf(conf)
     method = str(mc.get("method", "paper"))
     if method not in ("paper", "vote"):
         raise ValueError(f"unknown register.matcher.method {method!r} (vote | paper)")
     q_xy, q_desc, q_resp, q_ang, q_size = qf.xy, qf.desc, qf.response, qf.angle, qf.size
     if mc.get("polarity") == "both" and len(qf):
-        q_xy, q_desc, q_resp = crossspectral.add_polarity(q_xy, q_desc, q_resp)
+        q_xy, q_desc, q_resp = matching.add_polarity(q_xy, q_desc, q_resp)
         if q_ang is not None and q_size is not None:
             q_ang = np.r_[q_ang, (q_ang + 180.0) % 360.0]
             q_size = np.r_[q_size, q_size]
     if method == "vote" and guide is not None and mdesc is not None:
-        gm = crossspectral.guided_matches(
+        gm = matching.guided_matches(
             q_xy, q_desc, guide[0], mxy, mdesc, guide[1], float(mc.get("guided_ratio", 0.8)), knn
         )
         return [(gm, 1, "guided")]
     geom = source.geometry(ids) if method == "vote" else None
     if method == "vote" and geom is not None and q_ang is not None and q_size is not None:
         m_ang, m_scale = geom
-        hyps = crossspectral.rotation_hypotheses(
+        hyps = matching.rotation_hypotheses(
             q_xy, q_desc, q_ang, q_size, mxy, m_ang, m_scale / source.gsd_m, knn, mc
         )
         if hyps:
@@ -504,6 +565,14 @@ def index_candidates(
         raise ValueError(f"unknown register.index.rank {rank!r} (hough | tiles | regions)")
     g = diag_m
     out: list[tuple[Bounds, float | None]] = []
+    if source.clip is not None:
+        # a location prior: at most as many candidates as footprint-sized places it holds; a
+        # prior of about two footprints a side is one candidate, the whole of it
+        b = source.bounds
+        places = max(1, math.ceil((b[2] - b[0]) * (b[3] - b[1]) / max(diag_m**2, 1e-9)))
+        if places <= 4:
+            return [(b, None)]
+        top = min(top, places)
     nn = source.index if source.index is not None else plain_nearest(source)
     if nn is not None and rank == "hough":
         from georeg.register.hough import hough_regions
@@ -522,10 +591,14 @@ def index_candidates(
         )
     if source.index is not None and rank == "tiles":
         tb = np.asarray(source.index.tile_bounds, np.float64)
-        ranked = source.index.rank_tiles(qf.desc, top)
+        ranked = source.index.rank_tiles(qf.desc, top if source.clip is None else len(tb))
         # tiles without a shared word (or a one-tile map, where idf = 0) follow, unranked
         seen = {t for t, _ in ranked}
         ok = np.isfinite(tb).all(axis=1)
+        if source.clip is not None:  # only the tiles the prior reaches
+            c = source.clip
+            ok &= (tb[:, 0] <= c[2]) & (tb[:, 2] >= c[0]) & (tb[:, 1] <= c[3]) & (tb[:, 3] >= c[1])
+            ranked = [(t, sc) for t, sc in ranked if ok[t]]
         rest = [(int(t), None) for t in np.flatnonzero(ok) if int(t) not in seen]
         for t, s in (ranked + rest)[:top]:
             b = tb[t]
@@ -535,13 +608,16 @@ def index_candidates(
         for b, s in source.index.rank_regions(qf.desc, diag_m, diag_m / 2, top):
             h = g / 2
             out.append(((b[0] - h, b[1] - h, b[2] + h, b[3] + h), s))
-        return out
+        return out  # (with a prior, a region outside it is verified on no feature: rejected)
     # no index (plain arrays) and rank tiles / regions, or no keypoint geometry: 1-NN votes of
     # the query descriptors on cells of the footprint size
     mb = source.bounds
     d, ii = matching.knn2(dequantize(np.asarray(source.desc)))(qf.desc)
     ok = ii[:, 0] >= 0
     xy = np.asarray(source.xy)[ii[ok, 0]]
+    if source.clip is not None:
+        c = source.clip
+        xy = xy[(xy[:, 0] >= c[0]) & (xy[:, 0] <= c[2]) & (xy[:, 1] >= c[1]) & (xy[:, 1] <= c[3])]
     cell = diag_m
     nx = max(1, int(math.ceil((mb[2] - mb[0]) / cell)))
     ny = max(1, int(math.ceil((mb[3] - mb[1]) / cell)))
@@ -705,8 +781,11 @@ def run_search_part(
     t_load = time.perf_counter() - t0
     gsd = gsd_in_map_units(meta.get("gsd_m"), source.crs_wkt)
     factors = feature_scales(gsd, source.gsd_m, reg_conf.get("unknown_gsd_factors", [1.0]))
+    prior = prior_bounds(meta.get("prior"), source.crs_wkt, band_json)
+    source = clip_to_prior(source, prior, u8.shape[-1], u8.shape[-2], gsd, factors)
     t1 = time.perf_counter()
     res = search_one_part(u8, part, source, reg_conf, gsd, factors, seed)
+    res["prior"] = prior_record(meta.get("prior"), prior)
     res["timings_s"] = {"load": t_load, "features_and_search": time.perf_counter() - t1}
     res["seconds"] = time.perf_counter() - t0
     write_json(out_json, res)

@@ -28,9 +28,9 @@ from typing import Any
 import numpy as np
 
 from georeg.index.features import detect_and_describe, merged_conf, resample
-from georeg.register import acceptance, crossspectral, matching
-from georeg.register.dense_null import null_conf
-from georeg.register.search import MapSource, QueryFeatures, query_features
+from georeg.register import acceptance, matching
+from georeg.register.null_scan import null_conf
+from georeg.register.search import MapSource, MapView, QueryFeatures, QueryInput, query_features
 
 log = logging.getLogger(__name__)
 
@@ -38,10 +38,8 @@ SMALL_DEFAULTS: dict[str, Any] = {
     "enabled": True,
     "max_side_px": 160,
     "max_windows": 3,
-    "windows": "hough",
     "step_deg": 10.0,
     "max_side": 96,
-    "peaks": 1,
     "radii_px": [8.0, 4.0],
     "ratio": 0.8,
     "inlier_px": 3.0,
@@ -165,7 +163,7 @@ def _guided_rematch(
     best = None
     for k, radius_px in enumerate(float(v) for v in sc["radii_px"]):
         disc = math.pi * radius_px**2
-        gm = crossspectral.guided_matches(q_xy, q_desc, H, mxy, mdesc, radius_px * g,
+        gm = matching.guided_matches(q_xy, q_desc, H, mxy, mdesc, radius_px * g,
                                           float(sc["ratio"]), knn)  # fmt: skip
         if len(gm) < 4:
             break
@@ -221,10 +219,8 @@ def small_register(
         box = (float(cr[:, 0].min()), float(cr[:, 1].min()), float(cr[:, 0].max()),
                float(cr[:, 1].max()))  # fmt: skip
         places_px = max(1.0, (box[2] - box[0]) * (box[3] - box[1]))
-    n_peaks = int(sc.get("peaks", 1))
     r = dense_search(q0, q_gsd / win_px, win, float(sc["step_deg"]), int(sc["max_side"]),
-                     centre_box=box, n_peaks=n_peaks,
-                     apart_px=float(sc["radii_px"][0]) * feature_gsd / win_px)  # fmt: skip
+                     centre_box=box)  # fmt: skip
     if r is None:
         rec.update(reason="no overlap", seconds=time.perf_counter() - t0)
         return rec
@@ -240,7 +236,7 @@ def small_register(
         return rec
     mxy, mdesc = np.asarray(src.xy, np.float64), np.asarray(src.desc, np.float32)
     knn = matching.knn2(mdesc)
-    q_xy, q_desc, _ = crossspectral.add_polarity(qf.xy, qf.desc, qf.response)
+    q_xy, q_desc, _ = matching.add_polarity(qf.xy, qf.desc, qf.response)
     win_area = places_px * (win_px / g) ** 2  # where the query centre may be, feature px
     n_rot = int(round(360.0 / float(sc["step_deg"])))
     hyps = [(r.S, r.angle_deg, r.score)] + list(r.others or [])
@@ -271,69 +267,110 @@ def small_register(
 def small_windows(
     qf: QueryFeatures,
     source: MapSource,
-    parts: list[dict[str, Any]],
     conf: dict[str, Any],
     gsd_m: float,
 ) -> list[tuple[float, ...]]:
-    """The first ``max_windows`` candidate regions: ``windows: hough`` ranks them again with the
-    dense query features ``qf`` (the index's Hough vote, ``register.index``; more query features
-    put the true place in the first three regions more often: 30 vs 26 of the 48 queries of the
-    tuning cities' small subset); ``searched``: the regions the searches tried."""
-    from georeg.register.fuse import candidate_windows
+    """The first ``max_windows`` candidate regions, ranked again with the dense query features
+    ``qf`` (the index's Hough vote, ``register.index``; more query features put the true place in
+    the first three regions more often than the regions the searches tried: 30 vs 26 of the 48
+    queries of the tuning cities' small subset)."""
     from georeg.register.search import footprint_diagonal_m, index_candidates
 
     sc = small_conf(conf)
     n = int(sc["max_windows"])
-    if str(sc.get("windows", "hough")) == "searched":
-        return candidate_windows(parts, n)
     ic = {**(conf.get("index") or {}), "top_candidates": n}
     diag = footprint_diagonal_m(qf, source.gsd_m, gsd_m)
     return [tuple(float(v) for v in b) for b, _ in index_candidates(qf, source, diag, ic)][:n]
 
 
-def small_fallback(
-    u8: np.ndarray,
-    full: QueryFeatures,
-    source: MapSource,
-    parts: list[dict[str, Any]],
-    conf: dict[str, Any],
-    gsd_m: float | None,
-    read_window: Any,
-    seed: int = 0,
-) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """When no search accepted a small query (``register.small``): ``small_register`` in the
-    first ``max_windows`` candidate regions the searches tried; the first accepted one becomes
-    one more (whole-query) part. ``read_window(bounds)`` as ``fuse.dense_fallback``."""
-    from georeg.register.dense import window_u8
-    from georeg.register.fuse import first_accepted_window
+def first_accepted_window(windows: list[tuple[float, ...]], read_window: Any, register: Any,
+                          parts: list[dict[str, Any]], height: int, flag: str,
+                          keys: tuple[str, ...] = (), grow: float = 0.0,
+                          ) -> tuple[list[dict[str, Any]], dict[str, Any]]:  # fmt: skip
+    """Each window (grown by ``grow`` map units) read by ``read_window``, then ``register(k, gray,
+    A, bounds)``; the first accepted record becomes one more whole-query part, marked ``flag``.
+    Returns the parts and the record of the windows tried (their bounds, acceptance, inliers,
+    NFA, reason, seconds and ``keys``)."""
+    tried = []
+    for k, b in enumerate(windows):
+        got = read_window((b[0] - grow, b[1] - grow, b[2] + grow, b[3] + grow))
+        if got is None:
+            continue
+        rec = register(k, *got, b)
+        rec["bounds"] = [float(v) for v in b]
+        tried.append({k2: rec.get(k2) for k2 in ("bounds", "accepted", "inliers", "matches",
+                      "log10_nfa", *keys, "reason", "seconds")})  # fmt: skip
+        log.info("%s search in window %d: %s inliers, log10 NFA %s -> %s", flag, k,
+                 rec.get("inliers"), rec.get("log10_nfa"),
+                 "ACCEPT" if rec["accepted"] else rec.get("reason"))  # fmt: skip
+        if rec["accepted"]:
+            part = {**rec, "part": len(parts), "rows": [0, height], "whole_query": True,
+                    flag: True, "candidates_tried": k + 1, "candidates": []}  # fmt: skip
+            return [*parts, part], {"ran": True, "candidates": len(tried), "windows": tried,
+                                    "accepted_window": k}  # fmt: skip
+    return parts, {"ran": True, "candidates": len(tried), "windows": tried,
+                   "accepted_window": None}  # fmt: skip
 
+
+def _why_not(u8: np.ndarray, conf: dict[str, Any], gsd_m: float | None,
+             read_window: Any) -> str | None:  # fmt: skip
+    """Why the small-query sources do not apply to this query (None: they do)."""
     sc = small_conf(conf)
     h, w = u8.shape[-2:]
-    if any(p.get("accepted") for p in parts):
-        return parts, {"ran": False, "reason": "a search was accepted"}
     if not applies(w, h, conf):
-        why = "disabled" if not sc["enabled"] else f"query side > {sc['max_side_px']} px"
-        return parts, {"ran": False, "reason": why}
+        return "disabled" if not sc["enabled"] else f"query side > {sc['max_side_px']} px"
     if not gsd_m or read_window is None:
-        return parts, {"ran": False, "reason": "no query GSD or no orthophoto"}
+        return "no query GSD or no orthophoto"
+    return None
+
+
+def window_source(
+    q: QueryInput, view: MapView, parts: list[dict[str, Any]], conf: dict[str, Any]
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Source ``small_windows`` (``register.small``): ``small_register`` in the first
+    ``max_windows`` candidate regions of the dense query features; the first accepted one
+    becomes one more (whole-query) part. ``read_window(bounds)`` -> (float gray window, NaN =
+    nodata; 3 x 3 window pixel centre -> map x, y) or None. Returns the parts and the record."""
+    from georeg.register.dense import window_u8
+
+    u8, gsd_m, seed, source, read_window = q.u8, q.gsd, q.seed, view.source, view.read_window
+    why = _why_not(u8, conf, gsd_m, read_window)
+    if why:
+        return parts, {"ran": False, "reason": why}
+    assert gsd_m is not None
+    sc = small_conf(conf)
+    h, w = u8.shape[-2:]
     fconf = dense_features_conf(source.features_conf, sc)
     qf = query_features(u8, (0, h), [gsd_m / source.gsd_m], fconf)
-    windows = small_windows(qf, source, parts, conf, gsd_m)
+    windows = small_windows(qf, source, conf, gsd_m)
     grow = 0.5 * math.hypot(w, h) * float(gsd_m)  # a centre in the region, the footprint around
 
     def register(k: int, gray: np.ndarray, A: np.ndarray, b: tuple[float, ...]) -> dict[str, Any]:
         return small_register(u8, gsd_m, window_u8(gray), A, source.gsd_m, conf,
                               source.features_conf, seed + k, len(windows), qf, b)  # fmt: skip
 
-    parts, rec = first_accepted_window(windows, read_window, register, parts, full.height,
-                                       "small", ("angle_deg", "dense_score", "peak"), grow)  # fmt: skip
-    if rec.get("accepted_window") is None and null_conf(sc)["enabled"]:
-        got = null_register(u8, gsd_m, source, conf, read_window)
-        rec["cfog_null"] = {k: v for k, v in got.items() if k not in ("homography",)}
-        if got["accepted"]:
-            part = {**got, "part": len(parts), "rows": [0, h], "whole_query": True,
-                    "small": True, "candidates_tried": len(windows) + 1, "candidates": []}  # fmt: skip
-            parts = [*parts, part]
+    return first_accepted_window(windows, read_window, register, parts, h, "small",
+                                 ("angle_deg", "dense_score", "peak"), grow)  # fmt: skip
+
+
+def null_source(
+    q: QueryInput, view: MapView, parts: list[dict[str, Any]], conf: dict[str, Any]
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Source ``cfog_null`` (``register.small.null_test``): the small query's CFOG peak over the
+    whole map (``null_register``); an accepted peak becomes one more (whole-query) part.
+    Returns the parts and the record."""
+    u8, gsd_m, source, read_window = q.u8, q.gsd, view.source, view.read_window
+    why = _why_not(u8, conf, gsd_m, read_window)
+    if why or not null_conf(small_conf(conf))["enabled"]:
+        return parts, {"ran": False, "reason": why or "disabled"}
+    assert gsd_m is not None
+    h = u8.shape[-2]
+    got = null_register(u8, gsd_m, source, conf, read_window)
+    rec = {"ran": True, "candidates": 1, **{k: v for k, v in got.items() if k != "homography"}}
+    if got["accepted"]:
+        part = {**got, "part": len(parts), "rows": [0, h], "whole_query": True,
+                "small": True, "candidates_tried": 1, "candidates": []}  # fmt: skip
+        parts = [*parts, part]
     return parts, rec
 
 
@@ -345,17 +382,16 @@ def null_register(
     read_window: Any,
 ) -> dict[str, Any]:
     """The small query's CFOG peak over the whole map, decided by the calibrated block-maxima
-    null (``georeg.register.dense_null``, ``register.small.null_test``); an accepted peak becomes a
-    similarity at the known GSD refined by ``dense_null.fine_pose`` and checked for
+    null (``georeg.register.null_scan``, ``register.small.null_test``); an accepted peak becomes a
+    similarity at the known GSD refined by ``null_scan.fine_pose`` and checked for
     plausibility. A record like a search part's (``accepted``, ``homography``, ``log10_nfa``
     = the CFOG peak's, ``inliers`` 0) with the evidence (statistic, p-value, null size).
 
     The map is read and correlated at once up to ``max_map_px`` correlation px (``scan:
-    whole``), tile by tile above it (``georeg.register.dense_tiled``, ``tile_px``; ``scan:
+    whole``), tile by tile above it (``null_scan.tiled_scan``, ``tile_px``; ``scan:
     tiled``, ``tiles``) up to ``max_tiled_map_px``, and not at all beyond (``reason``)."""
     from georeg.register.dense import window_u8
-    from georeg.register.dense_null import fine_pose, scan
-    from georeg.register.dense_tiled import tiled_scan
+    from georeg.register.null_scan import fine_pose, scan, tiled_scan
 
     t0 = time.perf_counter()
     sc = small_conf(conf)
@@ -382,7 +418,7 @@ def null_register(
     elif est <= float(nc["max_map_px"]):
         rec.update(reason="no orthophoto", seconds=time.perf_counter() - t0)
         return rec
-    if got is None:  # larger than one FFT: tile by tile (dense_tiled), up to max_tiled_map_px
+    if got is None:  # larger than one FFT: tile by tile (null_scan.tiled_scan), up to max_tiled_map_px
         try:
             r = tiled_scan(q0, float(q_gsd), b, read_window, source.gsd_m, float(sc["step_deg"]),
                            int(sc["max_side"]), int(nc["block_px"]), float(nc["exclude_px"]),

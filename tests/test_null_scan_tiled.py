@@ -1,5 +1,5 @@
-"""The tiled CFOG null scan (georeg.register.dense_tiled) on synthetic maps: the same peak and
-statistic as the whole-map scan (dense_null.scan), a query found in a map larger than one FFT
+"""The tiled CFOG null scan (georeg.register.null_scan) on synthetic maps: the same peak and
+statistic as the whole-map scan (null_scan.scan), a query found in a map larger than one FFT
 through ``small.null_register``'s default config, reads never larger than a tile, and the cap."""
 
 from __future__ import annotations
@@ -11,8 +11,7 @@ import numpy as np
 
 from georeg.register import matching
 from georeg.register.dense import window_u8
-from georeg.register.dense_null import scan
-from georeg.register.dense_tiled import query_geometry, tiled_scan
+from georeg.register.null_scan import query_geometry, scan, tiled_scan
 from georeg.register.search import MapSource
 from georeg.register.small import null_register
 
