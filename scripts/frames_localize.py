@@ -19,6 +19,8 @@ def main(smk):
         Path(smk.output.poses).parent,
         smk.input.truth[0] if smk.input.truth else None,
         ground_z=float(smk.params.ground_z),
+        prior=fs.get("prior"),
+        set_name=smk.wildcards.fset,
     )
 
 

@@ -56,6 +56,7 @@ class Coarse:
     reason: str = ""
     # nadir-vote poses (R, C, votes), most votes first: starting points for the render stage
     hypotheses: list = field(default_factory=list)
+    budget: dict = field(default_factory=dict)  # what the search cost and tested (index mode)
 
 
 @dataclass
@@ -340,6 +341,16 @@ def coarse_locate(gray: np.ndarray, K: np.ndarray, index, conf: dict | None = No
             xs = np.arange(tb[:, 0].min(), tb[:, 2].max(), step)
             ys = np.arange(tb[:, 1].min(), tb[:, 3].max(), step)
             regions = list(regions) + [((x, y, x + step, y + step), 0.0) for y in ys for x in xs]
+    return _search_regions(K, index, c, keys, hyps, regions, dense, (w, h), t0)
+
+
+def _search_regions(K: np.ndarray, index, c: dict, keys: list, hyps: list, regions: list,
+                    dense: tuple | None, wh: tuple[int, int], t0: float) -> Coarse:  # fmt: skip
+    """Visit ``regions`` in order (dense windows when ``dense``): nadir votes per tilt
+    hypothesis, the best verified by PnP; stops at a pose with 2 x ``min_inliers``, after
+    ``dense_windows`` dense windows or ``max_seconds``."""
+    w, h = wh
+    feat_conf = index.meta.get("features_conf") or {}
     cands: list[dict] = []
     g = float(c["grow_m"])
     windows: list[Any] = []
@@ -383,6 +394,7 @@ def coarse_locate(gray: np.ndarray, K: np.ndarray, index, conf: dict | None = No
         if not why and res.inliers > best.inliers:
             best = Coarse(True, res.R, res.C, res.inliers, cands, hypotheses=best.hypotheses)
 
+    visited = 0
     for k, (b, score) in enumerate(regions):
         gb = (b[0] - g, b[1] - g, b[2] + g, b[3] + g)
         src = index
@@ -397,6 +409,7 @@ def coarse_locate(gray: np.ndarray, K: np.ndarray, index, conf: dict | None = No
             windows.append(src)
             log.info("coarse: dense window %d: %d map features", len(windows), len(src))
         ids = src.features_in(gb)
+        visited += 1
         here = []
         for hi, (virt, _orig, view) in enumerate(keys):
             if not view:
@@ -427,4 +440,138 @@ def coarse_locate(gray: np.ndarray, K: np.ndarray, index, conf: dict | None = No
         best.reason = "no candidate gave a plausible pose with enough inliers"
     best.hypotheses.sort(key=lambda t: -t[2])
     best.candidates = cands[: max(tried, 8)]
+    best.budget = {"regions_searched": visited, "pnp_tests": tried}
     return best
+
+
+# --------------------------------------------------------------------------- index-based search
+
+#: the index search (``mode: index``, default): settings added to ``DEFAULTS``
+INDEX_DEFAULTS: dict[str, Any] = {
+    "mode": "index",  # index (region votes of the map index near the frame's footprint) | plain
+    "window_frac": 1.5,  # region window = this x the frame's diagonal seen at the map GSD
+    "stride_frac": 0.5,  # region stride = this x the window
+    "max_regions": 8,  # candidate budget: regions searched at most (each: every tilt hypothesis)
+    "grow_frac": 0.25,  # a region is searched grown by this x the window on every side
+    "nprobe": 2,  # frame descriptors matched to the region features of their nearest words only
+}
+
+
+class WordIndex:
+    """A map index whose ``knn`` compares each descriptor only with the candidate features that
+    share one of its ``nprobe`` nearest visual words (the inverted file's own restriction), so a
+    region's matching costs |frame| x nprobe x the region's features per word, not |frame| x the
+    region's features. Everything else is the wrapped index's."""
+
+    def __init__(self, index, nprobe: int = 2) -> None:
+        self._index, self._nprobe = index, int(nprobe)
+
+    def __getattr__(self, name: str):
+        return getattr(self._index, name)
+
+    def knn(self, q: np.ndarray, ids: np.ndarray, k: int = 2) -> tuple[np.ndarray, np.ndarray]:
+        from georeg.index.features import dequantize
+
+        n = len(q)
+        dist, fid = np.full((n, k), np.inf, np.float32), np.full((n, k), -1, np.int64)
+        ids = np.asarray(ids, np.int64)
+        if n == 0 or len(ids) == 0:
+            return dist, fid
+        _, qw = self._index.quantize(np.ascontiguousarray(q, np.float32), self._nprobe)
+        mw = np.asarray(self._index.word[ids], np.int64)
+        o = np.argsort(mw, kind="stable")
+        ids, mw = ids[o], mw[o]
+        lo = np.searchsorted(mw, qw.ravel(), "left")
+        cnt = np.searchsorted(mw, qw.ravel(), "right") - lo
+        qq = np.repeat(np.repeat(np.arange(n), qw.shape[1]), cnt)
+        start = np.repeat(lo - np.r_[0, np.cumsum(cnt)[:-1]], cnt)
+        cand = ids[np.arange(int(cnt.sum())) + start]
+        if not len(cand):
+            return dist, fid
+        md = dequantize(np.asarray(self._index.desc[np.sort(np.unique(cand))]))
+        row = np.searchsorted(np.sort(np.unique(cand)), cand)
+        qd = np.asarray(q, np.float32)
+        d = np.empty(len(cand), np.float32)
+        for a in range(0, len(cand), 1 << 18):
+            sl = slice(a, a + (1 << 18))
+            d[sl] = np.linalg.norm(qd[qq[sl]] - md[row[sl]], axis=1)
+        o = np.lexsort((d, qq))
+        qq, cand, d = qq[o], cand[o], d[o]
+        first = np.r_[0, np.flatnonzero(np.diff(qq)) + 1]
+        rank = np.arange(len(qq)) - np.repeat(first, np.diff(np.r_[first, len(qq)]))
+        keep = rank < k
+        dist[qq[keep], rank[keep]] = d[keep]
+        fid[qq[keep], rank[keep]] = cand[keep]
+        return dist, fid
+
+
+def index_window_m(w: int, h: int, map_gsd: float, conf: dict) -> tuple[float, float]:
+    """(window, stride) of the region vote: the frame's footprint if its GSD were the map's."""
+    win = float(conf["window_frac"]) * float(map_gsd) * float(np.hypot(w, h))
+    return win, float(conf["stride_frac"]) * win
+
+
+def coarse_index(gray: np.ndarray, K: np.ndarray, index, map_gsd: float, conf: dict | None = None,
+                 prior: tuple | None = None) -> Coarse:  # fmt: skip
+    """Coarse location through the map index only, with a bounded cost on any map size.
+
+    Visual words of the frame (every tilt hypothesis and scale, pooled) vote for map windows of
+    about the frame's footprint at the map GSD (``MapIndex.rank_regions``: TF-IDF over the
+    inverted file, the SWIR search's region ranking); within a ``prior`` box (x0, y0, x1, y1)
+    only when given. The best ``max_regions`` are searched on the index's own features (no
+    dense re-extraction: the direct 2-D/3-D match re-extracts the footprint afterwards): nadir
+    vote, then PnP, as ``coarse_locate``. ``budget`` in the result records the regions ranked
+    and searched and the PnP tests run (the a-contrario count of the coarse step).
+    """
+    c = {**DEFAULTS, **INDEX_DEFAULTS, **(conf or {})}
+    feat_conf = index.meta.get("features_conf") or {}
+    t0 = time.perf_counter()
+    h, w = gray.shape
+    hyps = [(0.0, 0.0)] + [
+        (float(t), float(d)) for t in c["tilts_deg"] if t for d in (0, 90, 180, 270)
+    ]
+    keys = [frame_keys(gray, c, feat_conf, K, hy) for hy in hyps]
+    t_keys = time.perf_counter() - t0
+    all_desc = np.concatenate([k[0].desc for k in keys])
+    if len(all_desc) < 10:
+        return Coarse(False, reason=f"only {len(all_desc)} frame features")
+    win, stride = index_window_m(w, h, map_gsd, c)
+    budget = int(c["max_regions"])
+    regions = index.rank_regions(all_desc, win, stride, top=None if prior else 4 * budget)
+    if prior is not None:
+        regions = [(b, s) for b, s in regions
+                   if b[0] < prior[2] and b[2] > prior[0] and b[1] < prior[3] and b[3] > prior[1]]  # fmt: skip
+    ranked = len(regions)
+    regions = _distinct_regions(regions, win, budget)
+    if not regions:  # a one-tile map (idf = 0) or no shared word: the whole map (or prior)
+        tb = np.asarray(index.tile_bounds, float)
+        tb = tb[np.isfinite(tb).all(axis=1)]
+        if len(tb):
+            b = (tb[:, 0].min(), tb[:, 1].min(), tb[:, 2].max(), tb[:, 3].max())
+            if prior is not None:
+                b = (max(b[0], prior[0]), max(b[1], prior[1]), min(b[2], prior[2]), min(b[3], prior[3]))
+            regions = [(b, 0.0)]
+    t1 = time.perf_counter()
+    c = {**c, "grow_m": float(c["grow_frac"]) * win, "dense_windows": budget}
+    src = WordIndex(index, int(c["nprobe"])) if int(c["nprobe"]) > 0 else index
+    res = _search_regions(K, src, c, keys, hyps, regions, None, (w, h), t0)
+    res.budget = {"mode": "index", "window_m": round(win, 1), "stride_m": round(stride, 1),
+                  "regions_ranked": ranked, "regions_budget": budget,
+                  **res.budget,
+                  "prior": list(prior) if prior is not None else None,
+                  "frame_features": int(len(all_desc)), "features_s": round(t_keys, 3),
+                  "rank_s": round(t1 - t0 - t_keys, 3), "search_s": round(time.perf_counter() - t1, 3)}  # fmt: skip
+    return res
+
+
+def _distinct_regions(regions: list, win: float, n: int) -> list:
+    """The best ``n`` regions whose centres are at least half a window apart (overlapping
+    sliding windows of one place count once)."""
+    out: list = []
+    for b, s in regions:
+        cx, cy = 0.5 * (b[0] + b[2]), 0.5 * (b[1] + b[3])
+        if all(np.hypot(cx - 0.5 * (o[0] + o[2]), cy - 0.5 * (o[1] + o[3])) >= 0.5 * win for o, _ in out):
+            out.append((b, s))
+            if len(out) >= n:
+                break
+    return out

@@ -30,7 +30,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from georeg.frames.coarse import Coarse, coarse_locate
+from georeg.frames.coarse import INDEX_DEFAULTS, Coarse, coarse_index, coarse_locate
 from georeg.frames.direct import DEFAULTS as DIRECT_DEFAULTS
 from georeg.frames.direct import (
     Matches,
@@ -168,6 +168,7 @@ class MapSources:
             log.warning("the map has no elevation: frames are localised on a flat ground at z = %g; "
                         "%s", self.flat_z, FLAT_GROUND_WARNING)  # fmt: skip
         self.window_cache: dict = {}  # the whole (small) map's dense features, for every frame
+        self.prior_box: tuple | None = None  # the set's location prior (map CRS box), if any
 
     def ground_z(self, C: np.ndarray, radius: float = 150.0) -> float:
         """Median elevation of the map features within ``radius`` of C (x, y), the radius grown
@@ -336,6 +337,20 @@ def camera_from_matches(mt: Matches, w: int, h: int, vconf: dict, c: dict, rec: 
             "source": f"estimated ({where} 2D-3D matches, {how})"}
 
 
+def run_coarse(gray: np.ndarray, K: np.ndarray, maps: MapSources, conf: dict | None) -> Coarse:
+    """The coarse search of ``frame_loc.coarse.mode``: ``index`` (``coarse_index``: region votes
+    of the map index at the frame's footprint, bounded budget, within the set's ``prior`` box when
+    given) or ``plain`` (``coarse_locate``: 400 m windows re-extracted densely, then the rest
+    of the map)."""
+    c = conf or {}
+    mode = str(c.get("mode", INDEX_DEFAULTS["mode"]))
+    if mode == "plain":
+        return coarse_locate(gray, K, maps.coarse_index, c, maps.dense)
+    if mode != "index":
+        raise ValueError(f"unknown frame_loc.coarse.mode {mode!r} (index | plain)")
+    return coarse_index(gray, K, maps.coarse_index, maps.gsd, c, maps.prior_box)
+
+
 def localize_image(
     rgb: np.ndarray, path: str, camera: dict | None, maps: MapSources, conf: dict
 ) -> tuple[dict, Any]:
@@ -384,7 +399,7 @@ def localize_image(
         if map_px <= int(vconf["whole_map_first_px"]):
             whole_map()  # a small map: cheaper than the coarse search
         t0c = time.perf_counter()
-        co = (coarse_locate(gray, K, maps.coarse_index, c["coarse"], maps.dense) if not hyps else
+        co = (run_coarse(gray, K, maps, c["coarse"]) if not hyps else
               Coarse(False, reason="not run: the whole-map direct matching gave a pose"))  # fmt: skip
         timings["coarse_s"] = time.perf_counter() - t0c
         focal_note = camera.get("source", "given")  # "exif": from frame_exif
@@ -394,7 +409,7 @@ def localize_image(
         co, K = None, None
         for fac in c["focal_factors"]:
             Kf, _ = camera_matrix(None, w, h, fac * w)
-            r = coarse_locate(gray, Kf, maps.coarse_index, c["coarse"], maps.dense)
+            r = run_coarse(gray, Kf, maps, c["coarse"])
             log.info("focal search: fx = %.0f px -> %s, %d inliers", fac * w, r.ok, r.inliers)
             if co is None or (r.ok and r.inliers > co.inliers):
                 co, K = r, Kf
@@ -422,7 +437,7 @@ def localize_image(
     rec["ground"] = ({"source": "dsm"} if maps.dsm else
                      {"source": "flat (no DSM given)", "z": maps.flat_z, "warning": FLAT_GROUND_WARNING})  # fmt: skip
     rec["coarse"] = {"ok": co.ok, "inliers": co.inliers, "reason": co.reason,
-                     "candidates": co.candidates}  # fmt: skip
+                     "budget": co.budget, "candidates": co.candidates}  # fmt: skip
     starts = [(co.R, co.C, "coarse PnP")] if co.ok else []
     starts += [
         (R, C, f"nadir vote ({v} votes)") for R, C, v in co.hypotheses[: int(c["vote_starts"])]
@@ -609,11 +624,22 @@ def evaluate(rec: dict, truth: dict) -> dict:
     return out
 
 
+def set_prior(maps: MapSources, prior: Any, set_name: str = "<set>") -> dict | None:
+    """The set's location prior as a box in the map CRS on ``maps`` (the index coarse search keeps
+    to it); what poses.json records of it (None without a prior). A bad prior: ``InputError``."""
+    from georeg.io.prior import prior_bounds, prior_record
+
+    key = f"frames.{set_name}.prior"
+    maps.prior_box = prior_bounds(prior, maps.crs_wkt, where=key, key=key)
+    return prior_record(prior, maps.prior_box)
+
+
 def localize_set(images: Any, camera: dict | None, index_dir, ortho_vrt, dsm_vrt, laz_paths,
                  conf: dict, out_dir, truth_path: str | None = None,
-                 ground_z: float = 0.0) -> list[dict]:  # fmt: skip
+                 ground_z: float = 0.0, prior: Any = None, set_name: str = "<set>") -> list[dict]:  # fmt: skip
     """Rule ``localize_frames``: every frame of a set -> results/frames/{set}/. ``dsm_vrt`` None:
-    the ground is the plane z = ``ground_z`` (recorded as ``ground`` in every pose)."""
+    the ground is the plane z = ``ground_z`` (recorded as ``ground`` in every pose). ``prior``
+    (``frames.<set>.prior``, ``georeg.io.prior``): the coarse search keeps to its box."""
     out = Path(out_dir)
     paths = frame_images(images)
     if not paths:
@@ -628,6 +654,7 @@ def localize_set(images: Any, camera: dict | None, index_dir, ortho_vrt, dsm_vrt
         dense_coarse=bool(conf.get("dense_coarse", DEFAULTS["dense_coarse"])),
         ground_z=ground_z,
     )
+    prior_rec = set_prior(maps, prior, set_name)
     truth = {}
     if truth_path:
         import json
@@ -636,6 +663,8 @@ def localize_set(images: Any, camera: dict | None, index_dir, ortho_vrt, dsm_vrt
     poses = []
     for p in paths:
         rec, (und, rend) = localize_frame(p, camera, maps, conf)
+        if prior_rec is not None:
+            rec["prior"] = prior_rec
         if Path(p).name in truth:
             rec["evaluation"] = evaluate(rec, truth[Path(p).name])
         a = float(conf.get("overlay_alpha", DEFAULTS["overlay_alpha"]))

@@ -138,6 +138,13 @@ class _Checker:
             t = fs.get("truth")
             if t and not self.made(t) and not Path(t).exists():
                 self.add(f"{key}.truth: {t}: file not found")
+            if fs.get("prior") is not None:
+                from georeg.io.prior import check_prior
+
+                try:
+                    check_prior(fs["prior"])
+                except ValueError as exc:
+                    self.add(f"{key}.prior: {exc}")
 
 
 def _centre_lonlat(ds: Any) -> tuple[float, float]:

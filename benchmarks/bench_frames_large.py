@@ -1,0 +1,129 @@
+"""Frames on large maps: seconds (CPU) and peak memory per frame against the map size.
+
+Maps: ``python -m georeg.demo.padmap`` (a real frames_dev case padded into a large map of other
+real imagery, built once, e.g. under /work/bigmaps/). Every frame runs in its own process
+(``one``), so its peak RSS is its own; CPU = user + system of that process around
+``localize_frame`` only (loading the index and imports excluded, reported apart). Frames of the
+other case are frames from elsewhere (expected ``not_found``).
+
+    python benchmarks/bench_frames_large.py run --map /work/bigmaps/odm_6 --coarse index \
+        --out benchmarks/out/frames_large.jsonl
+    python benchmarks/bench_frames_large.py table benchmarks/out/frames_large.jsonl
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "frames_dev"
+CASES = {"odm": ["0136", "0142"], "ngi": ["0182", "0251"]}
+#: coarse search modes: the scalable index search (default) and the plain (pre-index) one
+MODES = {"index": {}, "plain": {"coarse": {"mode": "plain"}}}
+
+
+def _cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def one(map_dir: str, case: str, fid: str, mode: str, extra: str | None) -> dict:
+    """Localise one frame of ``case`` on the padded map ``map_dir``; a JSON record."""
+    import numpy as np
+
+    from georeg.frames.localize import MapSources, evaluate, localize_frame
+
+    c0, t0 = _cpu(), time.perf_counter()
+    m = Path(map_dir)
+    maps = MapSources(m / "index", m / "ortho.vrt", m / "dsm.vrt")
+    truth = json.loads((DATA / case / "truth" / f"{fid}.json").read_text())
+    cam = {k: truth["intrinsics"][k] for k in ("fx", "fy", "cx", "cy")}
+    cam["dist"] = truth["intrinsics"].get("dist") or [0, 0, 0, 0, 0]
+    conf = {**MODES[mode], **json.loads(extra or "{}")}
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    c1, t1 = _cpu(), time.perf_counter()
+    rec, _ = localize_frame(str(DATA / case / "queries" / f"{fid}.png"), cam, maps, conf)
+    cpu, wall = _cpu() - c1, time.perf_counter() - t1
+    ev = evaluate(rec, {**truth, "status": "registered"})
+    man = json.loads((m / "padmap.json").read_text())
+    return {"map": m.name, "map_case": man["case"], "mpx": man["mpx"], "gsd": man["gsd"],
+            "frame": f"{case}/{fid}", "expected": "registered" if case == man["case"] else "not_found",
+            "mode": mode, "status": rec["status"], "path": rec.get("path"),
+            "h_err_m": (ev.get("final") or {}).get("horizontal_m"),
+            "pos_err_m": (ev.get("final") or {}).get("position_m"),
+            "cpu_s": cpu, "wall_s": wall, "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "rss_before_mb": rss0, "load_cpu_s": c1 - c0, "load_wall_s": t1 - t0,
+            "timings_s": rec.get("timings_s"), "coarse": {k: v for k, v in (rec.get("coarse") or {}).items()
+                                                          if k != "candidates"},
+            "score": (rec.get("verification") or {}).get("score"), "extra": extra,
+            "loadavg": float(np.round(__import__("os").getloadavg()[0], 2))}  # fmt: skip
+
+
+def run(a: argparse.Namespace) -> None:
+    out = Path(a.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    frames = [(c, f) for c in a.cases for f in CASES[c]]
+    for case, fid in frames:
+        for mode in a.coarse:
+            cmd = [sys.executable, __file__, "one", a.map, case, fid, mode] + ([a.extra] if a.extra else [])
+            r = subprocess.run(cmd, capture_output=True, text=True)
+            line = r.stdout.strip().splitlines()[-1] if r.returncode == 0 and r.stdout.strip() else None
+            if line is None:
+                print(f"FAILED {case}/{fid} {mode}: {r.stderr[-2000:]}", file=sys.stderr)
+                continue
+            with out.open("a") as f:
+                f.write(line + "\n")
+            d = json.loads(line)
+            print(f"{d['map']} {d['frame']} {mode}: {d['status']} h {d['h_err_m']} "
+                  f"cpu {d['cpu_s']:.1f} s rss {d['peak_rss_mb']:.0f} MB {d['timings_s']}", flush=True)  # fmt: skip
+
+
+def table(a: argparse.Namespace) -> None:
+    import numpy as np
+
+    rows = [json.loads(x) for p in a.files for x in Path(p).read_text().splitlines() if x.strip()]
+    print("| map | Mpx | coarse | frames right | errors m (registered) | CPU s / frame median (max) | peak RSS MB |")
+    print("|---|---:|---|---|---|---:|---:|")
+    keys = sorted({(r["map"], r["mpx"], r["mode"]) for r in rows}, key=lambda k: (k[0].split("_")[0], k[1], k[2]))
+    for mp, mpx, mode in keys:
+        rs = [r for r in rows if (r["map"], r["mode"]) == (mp, mode)]
+        ok = sum(r["status"] == r["expected"] for r in rs)
+        errs = " / ".join(f"{r['h_err_m']:.2f}" for r in rs if r["status"] == "registered" and r["h_err_m"] is not None)
+        cpu = [r["cpu_s"] for r in rs]
+        print(f"| {mp} | {mpx:.0f} | {mode} | {ok}/{len(rs)} | {errs} | {np.median(cpu):.1f} ({max(cpu):.1f}) "
+              f"| {max(r['peak_rss_mb'] for r in rs):.0f} |")  # fmt: skip
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("one")
+    p.add_argument("map")
+    p.add_argument("case")
+    p.add_argument("fid")
+    p.add_argument("mode")
+    p.add_argument("extra", nargs="?")
+    p = sub.add_parser("run")
+    p.add_argument("--map", required=True)
+    p.add_argument("--cases", nargs="+", default=["odm", "ngi"])
+    p.add_argument("--coarse", nargs="+", default=["index", "plain"])
+    p.add_argument("--extra", help="JSON overrides of frame_loc")
+    p.add_argument("--out", required=True)
+    p = sub.add_parser("table")
+    p.add_argument("files", nargs="+")
+    a = ap.parse_args()
+    if a.cmd == "one":
+        print(json.dumps(one(a.map, a.case, a.fid, a.mode, a.extra)))
+    elif a.cmd == "run":
+        run(a)
+    else:
+        table(a)
+
+
+if __name__ == "__main__":
+    main()
