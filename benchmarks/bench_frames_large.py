@@ -1,6 +1,7 @@
 """Frames on large maps: seconds (CPU) and peak memory per frame against the map size.
 
-Maps: ``python -m georeg.demo.padmap`` (a real frames_dev case padded into a large map of other
+One thread per process (OMP / OpenBLAS / MKL / OpenCV): on the shared 2-core machine more threads
+only spin, and CPU seconds then measure the work. Maps: ``python -m georeg.demo.padmap`` (a real frames_dev case padded into a large map of other
 real imagery, built once, e.g. under /work/bigmaps/). Every frame runs in its own process
 (``one``), so its peak RSS is its own; CPU = user + system of that process around
 ``localize_frame`` only (loading the index and imports excluded, reported apart). Frames of the
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -25,6 +27,7 @@ DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "frames_
 CASES = {"odm": ["0136", "0142"], "ngi": ["0182", "0251"]}
 #: coarse search modes: the scalable index search (default) and the plain (pre-index) one
 MODES = {"index": {}, "plain": {"coarse": {"mode": "plain"}}}
+THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 def _cpu() -> float:
@@ -34,9 +37,12 @@ def _cpu() -> float:
 
 def one(map_dir: str, case: str, fid: str, mode: str, extra: str | None) -> dict:
     """Localise one frame of ``case`` on the padded map ``map_dir``; a JSON record."""
+    import cv2
     import numpy as np
 
     from georeg.frames.localize import MapSources, evaluate, localize_frame
+
+    cv2.setNumThreads(1)
 
     c0, t0 = _cpu(), time.perf_counter()
     m = Path(map_dir)
@@ -61,7 +67,7 @@ def one(map_dir: str, case: str, fid: str, mode: str, extra: str | None) -> dict
             "timings_s": rec.get("timings_s"), "coarse": {k: v for k, v in (rec.get("coarse") or {}).items()
                                                           if k != "candidates"},
             "score": (rec.get("verification") or {}).get("score"), "extra": extra,
-            "loadavg": float(np.round(__import__("os").getloadavg()[0], 2))}  # fmt: skip
+            "loadavg": float(np.round(os.getloadavg()[0], 2))}  # fmt: skip
 
 
 def run(a: argparse.Namespace) -> None:
@@ -71,7 +77,8 @@ def run(a: argparse.Namespace) -> None:
     for case, fid in frames:
         for mode in a.coarse:
             cmd = [sys.executable, __file__, "one", a.map, case, fid, mode] + ([a.extra] if a.extra else [])
-            r = subprocess.run(cmd, capture_output=True, text=True)
+            env = {**os.environ, **{v: "1" for v in THREAD_VARS}}
+            r = subprocess.run(cmd, capture_output=True, text=True, env=env)
             line = r.stdout.strip().splitlines()[-1] if r.returncode == 0 and r.stdout.strip() else None
             if line is None:
                 print(f"FAILED {case}/{fid} {mode}: {r.stderr[-2000:]}", file=sys.stderr)

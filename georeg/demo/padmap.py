@@ -106,7 +106,7 @@ def case_blocks(case_dir: Path, lay: dict, pads: list[np.ndarray], pick: np.ndar
             canvas[i * bs : (i + 1) * bs, j * bs : (j + 1) * bs] = pads[pick[r0 + i, c0 + j]]
     h, w = valid.shape
     canvas[:h, :w][valid] = rgb[valid]
-    tr = big * Affine.translation(c0 * bs, r0 * bs)
+    tr = big @ Affine.translation(c0 * bs, r0 * bs)
     z = np.full((H, W), np.nan, np.float32)
     with rasterio.open(case_dir / "elevation.tif") as s:
         reproject(s.read(1), z, src_transform=s.transform, src_crs=crs, dst_transform=tr,
@@ -195,7 +195,7 @@ def build(case_dir: str | Path, data: str | Path | None, n: int, out: str | Path
     for (r, c), nm in sorted(place.items()):
         tid = f"r{r:03d}_c{c:03d}"
         tf = feats[nm]
-        x0, y0 = big * (c * bs, r * bs)
+        x0, y0 = big @ (c * bs, r * bs)
         moved = TileFeatures(tf.xy + np.array([x0, y0]), tf.z, tf.ndsm, tf.scale, tf.angle,
                              tf.response, tf.desc)  # fmt: skip
         d = out / "features" / tid

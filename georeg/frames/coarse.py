@@ -345,10 +345,11 @@ def coarse_locate(gray: np.ndarray, K: np.ndarray, index, conf: dict | None = No
 
 
 def _search_regions(K: np.ndarray, index, c: dict, keys: list, hyps: list, regions: list,
-                    dense: tuple | None, wh: tuple[int, int], t0: float) -> Coarse:  # fmt: skip
+                    dense: tuple | None, wh: tuple[int, int], t0: float,
+                    clip: tuple | None = None) -> Coarse:  # fmt: skip
     """Visit ``regions`` in order (dense windows when ``dense``): nadir votes per tilt
     hypothesis, the best verified by PnP; stops at a pose with 2 x ``min_inliers``, after
-    ``dense_windows`` dense windows or ``max_seconds``."""
+    ``dense_windows`` dense windows or ``max_seconds``. ``clip``: no map feature outside it."""
     w, h = wh
     feat_conf = index.meta.get("features_conf") or {}
     cands: list[dict] = []
@@ -397,6 +398,8 @@ def _search_regions(K: np.ndarray, index, c: dict, keys: list, hyps: list, regio
     visited = 0
     for k, (b, score) in enumerate(regions):
         gb = (b[0] - g, b[1] - g, b[2] + g, b[3] + g)
+        if clip is not None:
+            gb = (max(gb[0], clip[0]), max(gb[1], clip[1]), min(gb[2], clip[2]), min(gb[3], clip[3]))
         src = index
         if dense is not None:
             if len(windows) >= int(c["dense_windows"]):
@@ -454,6 +457,8 @@ INDEX_DEFAULTS: dict[str, Any] = {
     "max_regions": 8,  # candidate budget: regions searched at most (each: every tilt hypothesis)
     "grow_frac": 0.25,  # a region is searched grown by this x the window on every side
     "nprobe": 2,  # frame descriptors matched to the region features of their nearest words only
+    "index_scales": [1.0, 0.5, 0.25],  # frame resizes (the window assumes a GSD near the map's)
+    "frame_features_per_mpx": 3000,  # strongest frame features kept per Mpx of each resize
 }
 
 
@@ -469,39 +474,58 @@ class WordIndex:
     def __getattr__(self, name: str):
         return getattr(self._index, name)
 
-    def knn(self, q: np.ndarray, ids: np.ndarray, k: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    def _region(self, ids: np.ndarray):
+        """The candidate features sorted by word, their float descriptors and squared norms
+        (kept for the next call with the same ids: every tilt hypothesis searches one region)."""
         from georeg.index.features import dequantize
 
+        key = (len(ids), int(ids[0]), int(ids[-1]), int(ids.sum()))
+        if getattr(self, "_key", None) != key:
+            mw = np.asarray(self._index.word[ids], np.int64)
+            o = np.argsort(mw, kind="stable")
+            sid = ids[o]
+            md = dequantize(np.asarray(self._index.desc[np.sort(sid)]))[np.argsort(np.argsort(sid))]
+            self._key, self._reg = key, (sid, mw[o], md, (md**2).sum(axis=1))
+        return self._reg
+
+    def knn(self, q: np.ndarray, ids: np.ndarray, k: int = 2) -> tuple[np.ndarray, np.ndarray]:
         n = len(q)
         dist, fid = np.full((n, k), np.inf, np.float32), np.full((n, k), -1, np.int64)
         ids = np.asarray(ids, np.int64)
         if n == 0 or len(ids) == 0:
             return dist, fid
-        _, qw = self._index.quantize(np.ascontiguousarray(q, np.float32), self._nprobe)
-        mw = np.asarray(self._index.word[ids], np.int64)
-        o = np.argsort(mw, kind="stable")
-        ids, mw = ids[o], mw[o]
-        lo = np.searchsorted(mw, qw.ravel(), "left")
-        cnt = np.searchsorted(mw, qw.ravel(), "right") - lo
-        qq = np.repeat(np.repeat(np.arange(n), qw.shape[1]), cnt)
-        start = np.repeat(lo - np.r_[0, np.cumsum(cnt)[:-1]], cnt)
-        cand = ids[np.arange(int(cnt.sum())) + start]
-        if not len(cand):
+        qd = np.ascontiguousarray(q, np.float32)
+        _, qw = self._index.quantize(qd, self._nprobe)
+        sid, mw, md, mn = self._region(ids)
+        qq = np.repeat(np.arange(n), qw.shape[1])
+        ww = qw.ravel()
+        o = np.argsort(ww, kind="stable")
+        qq, ww = qq[o], ww[o]
+        uw, first = np.unique(ww, return_index=True)
+        last = np.r_[first[1:], len(ww)]
+        lo, hi = np.searchsorted(mw, uw, "left"), np.searchsorted(mw, uw, "right")
+        qn = (qd**2).sum(axis=1)
+        rows = []
+        for a, b, m0, m1 in zip(first.tolist(), last.tolist(), lo.tolist(), hi.tolist(), strict=True):
+            if m1 <= m0:
+                continue
+            qs = qq[a:b]
+            d2 = qn[qs, None] - 2.0 * (qd[qs] @ md[m0:m1].T) + mn[None, m0:m1]
+            kk = min(k, m1 - m0)
+            part = np.argpartition(d2, kk - 1, axis=1)[:, :kk] if kk < m1 - m0 else \
+                np.broadcast_to(np.arange(m1 - m0), (len(qs), m1 - m0))  # fmt: skip
+            rows.append((np.repeat(qs, kk), sid[m0 + part].ravel(),
+                         np.take_along_axis(d2, part, axis=1).ravel()))  # fmt: skip
+        if not rows:
             return dist, fid
-        md = dequantize(np.asarray(self._index.desc[np.sort(np.unique(cand))]))
-        row = np.searchsorted(np.sort(np.unique(cand)), cand)
-        qd = np.asarray(q, np.float32)
-        d = np.empty(len(cand), np.float32)
-        for a in range(0, len(cand), 1 << 18):
-            sl = slice(a, a + (1 << 18))
-            d[sl] = np.linalg.norm(qd[qq[sl]] - md[row[sl]], axis=1)
-        o = np.lexsort((d, qq))
-        qq, cand, d = qq[o], cand[o], d[o]
-        first = np.r_[0, np.flatnonzero(np.diff(qq)) + 1]
-        rank = np.arange(len(qq)) - np.repeat(first, np.diff(np.r_[first, len(qq)]))
+        cq, cf, cd = (np.concatenate(c) for c in zip(*rows, strict=True))
+        o = np.lexsort((cd, cq))
+        cq, cf, cd = cq[o], cf[o], cd[o]
+        start = np.r_[0, np.flatnonzero(np.diff(cq)) + 1]
+        rank = np.arange(len(cq)) - np.repeat(start, np.diff(np.r_[start, len(cq)]))
         keep = rank < k
-        dist[qq[keep], rank[keep]] = d[keep]
-        fid[qq[keep], rank[keep]] = cand[keep]
+        dist[cq[keep], rank[keep]] = np.sqrt(np.maximum(cd[keep], 0.0))
+        fid[cq[keep], rank[keep]] = cf[keep]
         return dist, fid
 
 
@@ -530,7 +554,8 @@ def coarse_index(gray: np.ndarray, K: np.ndarray, index, map_gsd: float, conf: d
     hyps = [(0.0, 0.0)] + [
         (float(t), float(d)) for t in c["tilts_deg"] if t for d in (0, 90, 180, 270)
     ]
-    keys = [frame_keys(gray, c, feat_conf, K, hy) for hy in hyps]
+    fconf = {**feat_conf, "max_features_per_mpx": c["frame_features_per_mpx"]}
+    keys = [frame_keys(gray, {**c, "scales": c["index_scales"]}, fconf, K, hy) for hy in hyps]
     t_keys = time.perf_counter() - t0
     all_desc = np.concatenate([k[0].desc for k in keys])
     if len(all_desc) < 10:
@@ -554,7 +579,10 @@ def coarse_index(gray: np.ndarray, K: np.ndarray, index, map_gsd: float, conf: d
     t1 = time.perf_counter()
     c = {**c, "grow_m": float(c["grow_frac"]) * win, "dense_windows": budget}
     src = WordIndex(index, int(c["nprobe"])) if int(c["nprobe"]) > 0 else index
-    res = _search_regions(K, src, c, keys, hyps, regions, None, (w, h), t0)
+    # a prior bounds where the frame's centre can be: the map features within half a window of it
+    clip = None if prior is None else (prior[0] - 0.5 * win, prior[1] - 0.5 * win,
+                                       prior[2] + 0.5 * win, prior[3] + 0.5 * win)  # fmt: skip
+    res = _search_regions(K, src, c, keys, hyps, regions, None, (w, h), t0, clip)
     res.budget = {"mode": "index", "window_m": round(win, 1), "stride_m": round(stride, 1),
                   "regions_ranked": ranked, "regions_budget": budget,
                   **res.budget,
