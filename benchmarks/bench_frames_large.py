@@ -73,7 +73,7 @@ def one(map_dir: str, case: str, fid: str, mode: str, extra: str | None) -> dict
 def run(a: argparse.Namespace) -> None:
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    frames = [(c, f) for c in a.cases for f in CASES[c]]
+    frames = [(c, f) for c in a.cases for f in CASES[c] if not a.frames or f in a.frames]
     for case, fid in frames:
         for mode in a.coarse:
             cmd = [sys.executable, __file__, "one", a.map, case, fid, mode] + ([a.extra] if a.extra else [])
@@ -119,6 +119,7 @@ def main() -> None:
     p.add_argument("--map", required=True)
     p.add_argument("--cases", nargs="+", default=["odm", "ngi"])
     p.add_argument("--coarse", nargs="+", default=["index", "plain"])
+    p.add_argument("--frames", nargs="+", help="frame ids (default: every frame of the cases)")
     p.add_argument("--extra", help="JSON overrides of frame_loc")
     p.add_argument("--out", required=True)
     p = sub.add_parser("table")

@@ -459,6 +459,7 @@ INDEX_DEFAULTS: dict[str, Any] = {
     "nprobe": 2,  # frame descriptors matched to the region features of their nearest words only
     "index_scales": [1.0, 0.5, 0.25],  # frame resizes (the window assumes a GSD near the map's)
     "frame_features_per_mpx": 3000,  # strongest frame features kept per Mpx of each resize
+    "nadir_first": True,  # the nadir hypothesis alone first, the tilts only when it is not enough
 }
 
 
@@ -539,13 +540,15 @@ def coarse_index(gray: np.ndarray, K: np.ndarray, index, map_gsd: float, conf: d
                  prior: tuple | None = None) -> Coarse:  # fmt: skip
     """Coarse location through the map index only, with a bounded cost on any map size.
 
-    Visual words of the frame (every tilt hypothesis and scale, pooled) vote for map windows of
+    Visual words of the frame (the tilt hypotheses and scales, pooled) vote for map windows of
     about the frame's footprint at the map GSD (``MapIndex.rank_regions``: TF-IDF over the
     inverted file, the SWIR search's region ranking); within a ``prior`` box (x0, y0, x1, y1)
     only when given. The best ``max_regions`` are searched on the index's own features (no
     dense re-extraction: the direct 2-D/3-D match re-extracts the footprint afterwards): nadir
-    vote, then PnP, as ``coarse_locate``. ``budget`` in the result records the regions ranked
-    and searched and the PnP tests run (the a-contrario count of the coarse step).
+    vote, then PnP, as ``coarse_locate``. ``nadir_first``: the nadir hypothesis alone first; the
+    tilt hypotheses only when it gives no pose with 2 x ``min_inliers``. ``budget`` in the result
+    records the regions ranked and searched and the PnP tests run over both stages (the
+    a-contrario count of the coarse step).
     """
     c = {**DEFAULTS, **INDEX_DEFAULTS, **(conf or {})}
     feat_conf = index.meta.get("features_conf") or {}
@@ -555,20 +558,49 @@ def coarse_index(gray: np.ndarray, K: np.ndarray, index, map_gsd: float, conf: d
         (float(t), float(d)) for t in c["tilts_deg"] if t for d in (0, 90, 180, 270)
     ]
     fconf = {**feat_conf, "max_features_per_mpx": c["frame_features_per_mpx"]}
-    keys = [frame_keys(gray, {**c, "scales": c["index_scales"]}, fconf, K, hy) for hy in hyps]
-    t_keys = time.perf_counter() - t0
-    all_desc = np.concatenate([k[0].desc for k in keys])
-    if len(all_desc) < 10:
-        return Coarse(False, reason=f"only {len(all_desc)} frame features")
+    kc = {**c, "scales": c["index_scales"]}
     win, stride = index_window_m(w, h, map_gsd, c)
-    budget = int(c["max_regions"])
-    regions = index.rank_regions(all_desc, win, stride, top=None if prior else 4 * budget)
+    stages = [1, len(hyps)] if c["nadir_first"] and len(hyps) > 1 else [len(hyps)]
+    keys: list = []
+    res, spent = Coarse(False, reason="no frame features"), {"regions_searched": 0, "pnp_tests": 0}
+    times = {"features_s": 0.0, "rank_s": 0.0, "search_s": 0.0}
+    ranked, n_desc = 0, 0
+    for n in stages:
+        t1 = time.perf_counter()
+        keys += [frame_keys(gray, kc, fconf, K, hy) for hy in hyps[len(keys) : n]]
+        times["features_s"] += time.perf_counter() - t1
+        all_desc = np.concatenate([k[0].desc for k in keys])
+        n_desc = len(all_desc)
+        if n_desc < 10:
+            continue
+        t2 = time.perf_counter()
+        regions, ranked = _index_regions(index, all_desc, win, stride, int(c["max_regions"]), prior)
+        t3 = time.perf_counter()
+        times["rank_s"] += t3 - t2
+        res = _index_search(K, index, c, keys, hyps[:n], regions, (w, h), win, prior, t0)
+        times["search_s"] += time.perf_counter() - t3
+        for k in spent:
+            spent[k] += res.budget.get(k, 0)
+        if res.ok and res.inliers >= 2 * int(c["min_inliers"]):
+            break
+    res.budget = {"mode": "index", "window_m": round(win, 1), "stride_m": round(stride, 1),
+                  "regions_ranked": ranked, "regions_budget": int(c["max_regions"]), **spent,
+                  "hypotheses": len(keys), "prior": list(prior) if prior is not None else None,
+                  "frame_features": int(n_desc), **{k: round(v, 3) for k, v in times.items()}}  # fmt: skip
+    return res
+
+
+def _index_regions(index, desc: np.ndarray, win: float, stride: float, budget: int,
+                   prior: tuple | None) -> tuple[list, int]:  # fmt: skip
+    """The best ``budget`` distinct regions voted by ``desc`` (meeting ``prior``), and how many
+    were ranked; a one-tile map (idf = 0) or no shared word: the whole map (or prior)."""
+    regions = index.rank_regions(desc, win, stride, top=None if prior else 4 * budget)
     if prior is not None:
         regions = [(b, s) for b, s in regions
                    if b[0] < prior[2] and b[2] > prior[0] and b[1] < prior[3] and b[3] > prior[1]]  # fmt: skip
     ranked = len(regions)
     regions = _distinct_regions(regions, win, budget)
-    if not regions:  # a one-tile map (idf = 0) or no shared word: the whole map (or prior)
+    if not regions:
         tb = np.asarray(index.tile_bounds, float)
         tb = tb[np.isfinite(tb).all(axis=1)]
         if len(tb):
@@ -576,20 +608,19 @@ def coarse_index(gray: np.ndarray, K: np.ndarray, index, map_gsd: float, conf: d
             if prior is not None:
                 b = (max(b[0], prior[0]), max(b[1], prior[1]), min(b[2], prior[2]), min(b[3], prior[3]))
             regions = [(b, 0.0)]
-    t1 = time.perf_counter()
-    c = {**c, "grow_m": float(c["grow_frac"]) * win, "dense_windows": budget}
+    return regions, ranked
+
+
+def _index_search(K: np.ndarray, index, c: dict, keys: list, hyps: list, regions: list,
+                  wh: tuple[int, int], win: float, prior: tuple | None, t0: float) -> Coarse:  # fmt: skip
+    """``_search_regions`` on the index's features (word-restricted matching), regions grown by
+    ``grow_frac`` x the window, features clipped to the prior grown by half a window (a prior
+    bounds where the frame's centre can be)."""
+    c = {**c, "grow_m": float(c["grow_frac"]) * win, "dense_windows": int(c["max_regions"])}
     src = WordIndex(index, int(c["nprobe"])) if int(c["nprobe"]) > 0 else index
-    # a prior bounds where the frame's centre can be: the map features within half a window of it
     clip = None if prior is None else (prior[0] - 0.5 * win, prior[1] - 0.5 * win,
                                        prior[2] + 0.5 * win, prior[3] + 0.5 * win)  # fmt: skip
-    res = _search_regions(K, src, c, keys, hyps, regions, None, (w, h), t0, clip)
-    res.budget = {"mode": "index", "window_m": round(win, 1), "stride_m": round(stride, 1),
-                  "regions_ranked": ranked, "regions_budget": budget,
-                  **res.budget,
-                  "prior": list(prior) if prior is not None else None,
-                  "frame_features": int(len(all_desc)), "features_s": round(t_keys, 3),
-                  "rank_s": round(t1 - t0 - t_keys, 3), "search_s": round(time.perf_counter() - t1, 3)}  # fmt: skip
-    return res
+    return _search_regions(K, src, c, keys, hyps, regions, None, wh, t0, clip)
 
 
 def _distinct_regions(regions: list, win: float, n: int) -> list:
