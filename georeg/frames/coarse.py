@@ -460,6 +460,7 @@ INDEX_DEFAULTS: dict[str, Any] = {
     "index_scales": [1.0, 0.5, 0.25],  # frame resizes (the window assumes a GSD near the map's)
     "frame_features_per_mpx": 3000,  # strongest frame features kept per Mpx of each resize
     "nadir_first": True,  # the nadir hypothesis alone first, the tilts only when it is not enough
+    "direct_margin_m": 40.0,  # direct matching window margin around its PnP pose (within metres)
 }
 
 

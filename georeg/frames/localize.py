@@ -351,6 +351,16 @@ def run_coarse(gray: np.ndarray, K: np.ndarray, maps: MapSources, conf: dict | N
     return coarse_index(gray, K, maps.coarse_index, maps.gsd, c, maps.prior_box)
 
 
+def direct_conf(vconf: dict, start: str, co: Coarse, coarse_conf: dict | None) -> dict:
+    """Direct matching settings for one start: around the PnP pose of the index coarse search
+    (within metres of the truth) the window margin is ``coarse.direct_margin_m``, not the
+    ``direct.margin_m`` that covers a vote's error; the same map resolution either way."""
+    if start != "coarse PnP" or co.budget.get("mode") != "index":
+        return vconf
+    m = {**INDEX_DEFAULTS, **(coarse_conf or {})}["direct_margin_m"]
+    return {**vconf, "margin_m": float(m)}
+
+
 def localize_image(
     rgb: np.ndarray, path: str, camera: dict | None, maps: MapSources, conf: dict
 ) -> tuple[dict, Any]:
@@ -449,7 +459,7 @@ def localize_image(
     for R0, C0, how in starts if not hyps else []:
         cam0 = cam_of(R0, C0)
         dr, mt = direct_pose(gray, cam0, maps.ortho, maps.dsm, feat_conf, maps.gsd,
-                             maps.ground_z(C0), vconf, maps.flat_z)  # fmt: skip
+                             maps.ground_z(C0), direct_conf(vconf, how, co, c["coarse"]), maps.flat_z)  # fmt: skip
         windows.append(mt)
         rec.setdefault("direct_attempts", []).append({"start": how, **dr.info})
         if dr.pnp.ok and dr.pnp.inliers >= min_inl:
