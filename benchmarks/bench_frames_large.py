@@ -35,7 +35,7 @@ def _cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def one(map_dir: str, case: str, fid: str, mode: str, extra: str | None) -> dict:
+def one(map_dir: str, case: str, fid: str, mode: str, extra: str | None, index: str = "index") -> dict:
     """Localise one frame of ``case`` on the padded map ``map_dir``; a JSON record."""
     import cv2
     import numpy as np
@@ -46,7 +46,7 @@ def one(map_dir: str, case: str, fid: str, mode: str, extra: str | None) -> dict
 
     c0, t0 = _cpu(), time.perf_counter()
     m = Path(map_dir)
-    maps = MapSources(m / "index", m / "ortho.vrt", m / "dsm.vrt")
+    maps = MapSources(m / index, m / "ortho.vrt", m / "dsm.vrt")
     truth = json.loads((DATA / case / "truth" / f"{fid}.json").read_text())
     cam = {k: truth["intrinsics"][k] for k in ("fx", "fy", "cx", "cy")}
     cam["dist"] = truth["intrinsics"].get("dist") or [0, 0, 0, 0, 0]
@@ -57,7 +57,7 @@ def one(map_dir: str, case: str, fid: str, mode: str, extra: str | None) -> dict
     cpu, wall = _cpu() - c1, time.perf_counter() - t1
     ev = evaluate(rec, {**truth, "status": "registered"})
     man = json.loads((m / "padmap.json").read_text())
-    return {"map": m.name, "map_case": man["case"], "mpx": man["mpx"], "gsd": man["gsd"],
+    return {"map": m.name, "index": index, "k": maps.index.n_words, "map_case": man["case"], "mpx": man["mpx"], "gsd": man["gsd"],
             "frame": f"{case}/{fid}", "expected": "registered" if case == man["case"] else "not_found",
             "mode": mode, "status": rec["status"], "path": rec.get("path"),
             "h_err_m": (ev.get("final") or {}).get("horizontal_m"),
@@ -76,7 +76,7 @@ def run(a: argparse.Namespace) -> None:
     frames = [(c, f) for c in a.cases for f in CASES[c] if not a.frames or f in a.frames]
     for case, fid in frames:
         for mode in a.coarse:
-            cmd = [sys.executable, __file__, "one", a.map, case, fid, mode] + ([a.extra] if a.extra else [])
+            cmd = [sys.executable, __file__, "one", a.map, case, fid, mode, a.extra or "{}", "--index", a.index]
             env = {**os.environ, **{v: "1" for v in THREAD_VARS}}
             r = subprocess.run(cmd, capture_output=True, text=True, env=env)
             line = r.stdout.strip().splitlines()[-1] if r.returncode == 0 and r.stdout.strip() else None
@@ -96,13 +96,14 @@ def table(a: argparse.Namespace) -> None:
     rows = [json.loads(x) for p in a.files for x in Path(p).read_text().splitlines() if x.strip()]
     print("| map | Mpx | coarse | frames right | errors m (registered) | CPU s / frame median (max) | peak RSS MB |")
     print("|---|---:|---|---|---|---:|---:|")
-    keys = sorted({(r["map"], r["mpx"], r["mode"]) for r in rows}, key=lambda k: (k[0].split("_")[0], k[1], k[2]))
-    for mp, mpx, mode in keys:
-        rs = [r for r in rows if (r["map"], r["mode"]) == (mp, mode)]
+    keys = sorted({(r["map"], r["mpx"], r["mode"], r.get("k", 1000)) for r in rows},
+                  key=lambda k: (k[0].split("_")[0], k[1], k[2], k[3]))  # fmt: skip
+    for mp, mpx, mode, k in keys:
+        rs = [r for r in rows if (r["map"], r["mode"], r.get("k", 1000)) == (mp, mode, k)]
         ok = sum(r["status"] == r["expected"] for r in rs)
         errs = " / ".join(f"{r['h_err_m']:.2f}" for r in rs if r["status"] == "registered" and r["h_err_m"] is not None)
         cpu = [r["cpu_s"] for r in rs]
-        print(f"| {mp} | {mpx:.0f} | {mode} | {ok}/{len(rs)} | {errs} | {np.median(cpu):.1f} ({max(cpu):.1f}) "
+        print(f"| {mp} | {mpx:.0f} | {mode} (k {k}) | {ok}/{len(rs)} | {errs} | {np.median(cpu):.1f} ({max(cpu):.1f}) "
               f"| {max(r['peak_rss_mb'] for r in rs):.0f} |")  # fmt: skip
 
 
@@ -115,18 +116,20 @@ def main() -> None:
     p.add_argument("fid")
     p.add_argument("mode")
     p.add_argument("extra", nargs="?")
+    p.add_argument("--index", default="index")
     p = sub.add_parser("run")
     p.add_argument("--map", required=True)
     p.add_argument("--cases", nargs="+", default=["odm", "ngi"])
     p.add_argument("--coarse", nargs="+", default=["index", "plain"])
     p.add_argument("--frames", nargs="+", help="frame ids (default: every frame of the cases)")
     p.add_argument("--extra", help="JSON overrides of frame_loc")
+    p.add_argument("--index", default="index", help="index dir of the map (e.g. index_k6400)")
     p.add_argument("--out", required=True)
     p = sub.add_parser("table")
     p.add_argument("files", nargs="+")
     a = ap.parse_args()
     if a.cmd == "one":
-        print(json.dumps(one(a.map, a.case, a.fid, a.mode, a.extra)))
+        print(json.dumps(one(a.map, a.case, a.fid, a.mode, a.extra, a.index)))
     elif a.cmd == "run":
         run(a)
     else:

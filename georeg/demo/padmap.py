@@ -217,6 +217,43 @@ def build(case_dir: str | Path, data: str | Path | None, n: int, out: str | Path
     return man
 
 
+def reindex(out: str | Path, vocab_k: int, sample: int = 500_000, seed: int = 0) -> Path:
+    """Rebuild the index of a padded map under ``out`` with ``vocab_k`` words (the config's rule:
+    k grows with the map, ~N / 1,000) into ``out/index_k<k>``: a new vocabulary on a uniform
+    sample of the placed features, words assigned once per distinct block. Returns the index dir."""
+    from georeg.index.features import load_tile_features
+    from georeg.index.map_index import MapIndex, WordQuantizer
+    from georeg.index.vocabulary import train_kmeans
+
+    out = Path(out)
+    dirs = sorted((out / "features").iterdir())
+    metas = [json.loads((d / "meta.json").read_text()) for d in dirs]
+    first: dict[str, Path] = {}
+    for d, m in zip(dirs, metas, strict=True):
+        first.setdefault(m["block"], d)
+    desc = {b: np.asarray(load_tile_features(d)[0].desc) for b, d in first.items()}
+    names = [m["block"] for m in metas]
+    counts = np.array([len(desc[nm]) for nm in names])
+    rng = np.random.default_rng(seed)
+    rows = np.sort(rng.choice(counts.sum(), min(sample, counts.sum()), replace=False))
+    starts = np.r_[0, np.cumsum(counts)]
+    which = np.searchsorted(starts, rows, side="right") - 1
+    x = np.concatenate([desc[names[t]][rows[which == t] - starts[t]]
+                        for t in np.unique(which)]).astype(np.float32) / 512.0  # fmt: skip
+    cent, _ = train_kmeans(x, vocab_k, seed)
+    q = WordQuantizer(cent)
+    words = {b: q.words(d.astype(np.float32) / 512.0) for b, d in desc.items()}
+    wdir = out / f"words_k{vocab_k}"
+    wdir.mkdir(exist_ok=True)
+    wfiles = []
+    for d, nm in zip(dirs, names, strict=True):
+        np.save(wdir / f"{d.name}.npy", words[nm])
+        wfiles.append(wdir / f"{d.name}.npy")
+    dst = out / f"index_k{vocab_k}"
+    MapIndex.build(dirs, [d.name for d in dirs], cent, dst, crs_wkt=metas[0]["crs_wkt"], words=wfiles)
+    return dst
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--case", required=True, help="frames_dev case: odm | ngi")
@@ -224,9 +261,16 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--out", required=True)
     ap.add_argument("--data", default="../shared/data")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--vocab-k", type=int, default=1000, help="visual words (the config's default)")
+    ap.add_argument("--sample", type=int, default=500_000, help="k-means sample")
+    ap.add_argument("--reindex", action="store_true", help="only a new index_k<k> of a built map")
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    man = build(Path(a.data) / "frames_dev" / a.case, a.data, a.blocks, a.out, a.seed)
+    if a.reindex:
+        print(reindex(a.out, a.vocab_k, a.sample, a.seed))
+        return
+    man = build(Path(a.data) / "frames_dev" / a.case, a.data, a.blocks, a.out, a.seed,
+                vocab_k=a.vocab_k, sample=a.sample)  # fmt: skip
     print(json.dumps(man))
 
 
