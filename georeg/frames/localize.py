@@ -345,7 +345,9 @@ def run_coarse(gray: np.ndarray, K: np.ndarray, maps: MapSources, conf: dict | N
     c = conf or {}
     mode = str(c.get("mode", INDEX_DEFAULTS["mode"]))
     if mode == "plain":
-        return coarse_locate(gray, K, maps.coarse_index, c, maps.dense)
+        co = coarse_locate(gray, K, maps.coarse_index, c, maps.dense)
+        co.budget = {"mode": "plain", **co.budget}
+        return co
     if mode != "index":
         raise ValueError(f"unknown frame_loc.coarse.mode {mode!r} (index | plain)")
     return coarse_index(gray, K, maps.coarse_index, maps.gsd, c, maps.prior_box)
