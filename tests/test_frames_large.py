@@ -190,3 +190,14 @@ def test_real_odm_frames_in_padded_map(tmp_path):
     cam = {k: truth["intrinsics"][k] for k in ("fx", "fy", "cx", "cy")}
     rec, _ = localize_frame(str(ngi / "queries" / "0182.png"), cam, maps, {})
     assert rec["status"] == "not_found"
+
+
+def test_input_check_names_a_bad_frames_prior(tmp_path):
+    from georeg.register.inputs import check_inputs
+
+    img = tmp_path / "f.png"
+    cv2.imwrite(str(img), np.zeros((100, 100, 3), np.uint8))
+    bad = check_inputs({"frames": {"s": {"images": [str(img)], "prior": {"centre": [1, 2]}}}}, None)
+    assert any(p.startswith("frames.s.prior") and "radius_m" in p for p in bad), bad
+    ok = check_inputs({"frames": {"s": {"images": [str(img)], "prior": {"box": [0, 0, 1, 1]}}}}, None)
+    assert not any("prior" in p for p in ok), ok
