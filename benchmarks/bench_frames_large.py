@@ -94,17 +94,26 @@ def table(a: argparse.Namespace) -> None:
     import numpy as np
 
     rows = [json.loads(x) for p in a.files for x in Path(p).read_text().splitlines() if x.strip()]
-    print("| map | Mpx | coarse | frames right | errors m (registered) | CPU s / frame median (max) | peak RSS MB |")
-    print("|---|---:|---|---|---|---:|---:|")
-    keys = sorted({(r["map"], r["mpx"], r["mode"], r.get("k", 1000)) for r in rows},
-                  key=lambda k: (k[0].split("_")[0], k[1], k[2], k[3]))  # fmt: skip
-    for mp, mpx, mode, k in keys:
-        rs = [r for r in rows if (r["map"], r["mode"], r.get("k", 1000)) == (mp, mode, k)]
-        ok = sum(r["status"] == r["expected"] for r in rs)
-        errs = " / ".join(f"{r['h_err_m']:.2f}" for r in rs if r["status"] == "registered" and r["h_err_m"] is not None)
-        cpu = [r["cpu_s"] for r in rs]
-        print(f"| {mp} | {mpx:.0f} | {mode} (k {k}) | {ok}/{len(rs)} | {errs} | {np.median(cpu):.1f} ({max(cpu):.1f}) "
-              f"| {max(r['peak_rss_mb'] for r in rs):.0f} |")  # fmt: skip
+    # the last record of each (map, index, frame, mode, extra): a rerun replaces an earlier one
+    rows = list({(r["map"], r.get("k", 1000), r["frame"], r["mode"], r.get("extra") or "{}"): r
+                 for r in rows}.values())  # fmt: skip
+    print("| map | Mpx | coarse | in-map frames registered | errors m | CPU s / in-map frame (median) | "
+          "peak RSS MB (in-map) | from elsewhere: status, CPU s, RSS MB |")
+    print("|---|---:|---|---|---|---:|---:|---|")
+    keys = sorted({(r["map"], r["mpx"], r["mode"], r.get("k", 1000), r.get("extra") or "{}") for r in rows},
+                  key=lambda k: (k[0].split("_")[0], k[1], k[2], k[3], k[4]))  # fmt: skip
+    for mp, mpx, mode, k, ex in keys:
+        rs = [r for r in rows if (r["map"], r["mode"], r.get("k", 1000), r.get("extra") or "{}") == (mp, mode, k, ex)]
+        ins = [r for r in rs if r["expected"] == "registered"]
+        out = [r for r in rs if r["expected"] != "registered"]
+        ok = sum(r["status"] == "registered" for r in ins)
+        errs = " / ".join(f"{r['h_err_m']:.2f}" if r["h_err_m"] is not None else "-" for r in ins)
+        cpu = " / ".join(f"{r['cpu_s']:.1f}" for r in ins)
+        med = f"{np.median([r['cpu_s'] for r in ins]):.1f} ({cpu})" if ins else "-"
+        rss = f"{max(r['peak_rss_mb'] for r in ins):.0f}" if ins else "-"
+        far = "; ".join(f"{r['status']}, {r['cpu_s']:.1f}, {r['peak_rss_mb']:.0f}" for r in out) or "-"
+        print(f"| {mp} | {mpx:.0f} | {mode} (k {k}{'' if ex == '{}' else ', ' + ex}) | {ok}/{len(ins)} | {errs} "
+              f"| {med} | {rss} | {far} |")  # fmt: skip
 
 
 def main() -> None:
