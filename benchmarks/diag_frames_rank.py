@@ -22,7 +22,8 @@ from georeg.frames.coarse import (
 )
 from georeg.frames.localize import MapSources, camera_matrix
 
-m = Path(sys.argv[1]); case, fid = sys.argv[2], sys.argv[3]
+m = Path(sys.argv[1])
+case, fid = sys.argv[2], sys.argv[3]
 D = Path(__file__).resolve().parents[1] / '..' / 'shared' / 'data' / 'frames_dev'
 maps = MapSources(m / "index", m / "ortho.vrt", m / "dsm.vrt")
 truth = json.loads((D / case / "truth" / f"{fid}.json").read_text())
