@@ -454,7 +454,7 @@ INDEX_DEFAULTS: dict[str, Any] = {
     "mode": "index",  # index (region votes of the map index near the frame's footprint) | plain
     "window_frac": 1.5,  # region window = this x the frame's diagonal seen at the map GSD
     "stride_frac": 0.5,  # region stride = this x the window
-    "max_regions": 8,  # candidate budget: regions searched at most (each: every tilt hypothesis)
+    "max_regions": 16,  # candidate budget: distinct regions searched at most per stage
     "grow_frac": 0.25,  # a region is searched grown by this x the window on every side
     "nprobe": 2,  # frame descriptors matched to the region features of their nearest words only
     "index_scales": [1.0, 0.5, 0.25],  # frame resizes (the window assumes a GSD near the map's)
@@ -595,7 +595,7 @@ def _index_regions(index, desc: np.ndarray, win: float, stride: float, budget: i
                    prior: tuple | None) -> tuple[list, int]:  # fmt: skip
     """The best ``budget`` distinct regions voted by ``desc`` (meeting ``prior``), and how many
     were ranked; a one-tile map (idf = 0) or no shared word: the whole map (or prior)."""
-    regions = index.rank_regions(desc, win, stride, top=None if prior else 4 * budget)
+    regions = index.rank_regions(desc, win, stride, top=None)  # a few thousand windows at 1 Gpx
     if prior is not None:
         regions = [(b, s) for b, s in regions
                    if b[0] < prior[2] and b[2] > prior[0] and b[1] < prior[3] and b[3] > prior[1]]  # fmt: skip
