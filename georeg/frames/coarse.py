@@ -461,6 +461,7 @@ INDEX_DEFAULTS: dict[str, Any] = {
     "frame_features_per_mpx": 3000,  # strongest frame features kept per Mpx of each resize
     "nadir_first": True,  # the nadir hypothesis alone first, the tilts only when it is not enough
     "direct_margin_m": 40.0,  # direct matching window margin around its PnP pose (within metres)
+    "index_max_seconds": 300.0,  # wall-time safeguard per stage's region search (not the budget)
 }
 
 
@@ -621,7 +622,8 @@ def _index_search(K: np.ndarray, index, c: dict, keys: list, hyps: list, regions
     src = WordIndex(index, int(c["nprobe"])) if int(c["nprobe"]) > 0 else index
     clip = None if prior is None else (prior[0] - 0.5 * win, prior[1] - 0.5 * win,
                                        prior[2] + 0.5 * win, prior[3] + 0.5 * win)  # fmt: skip
-    return _search_regions(K, src, c, keys, hyps, regions, None, wh, t0, clip)
+    c["max_seconds"] = float(c["index_max_seconds"])  # the region count is the budget; a safeguard
+    return _search_regions(K, src, c, keys, hyps, regions, None, wh, time.perf_counter(), clip)
 
 
 def _distinct_regions(regions: list, win: float, n: int) -> list:
