@@ -320,7 +320,7 @@ METHODS: dict[str, dict[str, Any]] = {
     # image): since issue 20 ("accuracy over the whole footprint") the global homography is first
     # refitted to dense CFOG tie points (refine.global_fit); `_before` = the refinement without it
     "wf_default_refined": {"pipeline": {}, "bands": "auto", "refine": {}},
-    # a location prior (queries.<name>.prior, georeg/register/prior.py): a square of half side
+    # a location prior (queries.<name>.prior, georeg/io/prior.py): a square of half side
     # `prior` x the query's ground side around the true centre moved by a seeded offset of up to
     # half that; an unrelated pair: the same square at a seeded place of its map
     "wf_prior2": {"pipeline": {}, "bands": "auto", "prior": 2.0},

@@ -20,6 +20,8 @@ def main(smk):
         smk.input.truth[0] if smk.input.truth else None,
         ground_z=float(smk.params.ground_z),
         feature_maps=list(smk.input.feature_maps),
+        prior=fs.get("prior"),
+        set_name=smk.wildcards.fset,
     )
 
 

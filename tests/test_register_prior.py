@@ -1,4 +1,4 @@
-"""The optional location prior (georeg.register.prior): parsed and checked, the map clipped to it,
+"""The optional location prior (georeg.io.prior): parsed and checked, the map clipped to it,
 fewer candidates tested, a prior elsewhere ends not found, recorded in the result."""
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from test_register import (
 )
 
 from georeg.io.errors import InputError
+from georeg.io.prior import check_prior, prior_bounds, prior_record
 from georeg.register.fuse import register_query
-from georeg.register.prior import check_prior, prior_bounds, prior_record
 from georeg.register.search import clip_to_prior, index_candidates, query_features
 
 UTM50 = "EPSG:32650"

@@ -56,6 +56,7 @@ class Coarse:
     reason: str = ""
     # nadir-vote poses (R, C, votes), most votes first: starting points for the render stage
     hypotheses: list = field(default_factory=list)
+    budget: dict = field(default_factory=dict)  # what the search cost and tested (index mode)
 
 
 @dataclass
@@ -340,6 +341,17 @@ def coarse_locate(gray: np.ndarray, K: np.ndarray, index, conf: dict | None = No
             xs = np.arange(tb[:, 0].min(), tb[:, 2].max(), step)
             ys = np.arange(tb[:, 1].min(), tb[:, 3].max(), step)
             regions = list(regions) + [((x, y, x + step, y + step), 0.0) for y in ys for x in xs]
+    return _search_regions(K, index, c, keys, hyps, regions, dense, (w, h), t0)
+
+
+def _search_regions(K: np.ndarray, index, c: dict, keys: list, hyps: list, regions: list,
+                    dense: tuple | None, wh: tuple[int, int], t0: float,
+                    clip: tuple | None = None) -> Coarse:  # fmt: skip
+    """Visit ``regions`` in order (dense windows when ``dense``): nadir votes per tilt
+    hypothesis, the best verified by PnP; stops at a pose with 2 x ``min_inliers``, after
+    ``dense_windows`` dense windows or ``max_seconds``. ``clip``: no map feature outside it."""
+    w, h = wh
+    feat_conf = index.meta.get("features_conf") or {}
     cands: list[dict] = []
     g = float(c["grow_m"])
     windows: list[Any] = []
@@ -383,8 +395,11 @@ def coarse_locate(gray: np.ndarray, K: np.ndarray, index, conf: dict | None = No
         if not why and res.inliers > best.inliers:
             best = Coarse(True, res.R, res.C, res.inliers, cands, hypotheses=best.hypotheses)
 
+    visited = 0
     for k, (b, score) in enumerate(regions):
         gb = (b[0] - g, b[1] - g, b[2] + g, b[3] + g)
+        if clip is not None:
+            gb = (max(gb[0], clip[0]), max(gb[1], clip[1]), min(gb[2], clip[2]), min(gb[3], clip[3]))
         src = index
         if dense is not None:
             if len(windows) >= int(c["dense_windows"]):
@@ -397,6 +412,7 @@ def coarse_locate(gray: np.ndarray, K: np.ndarray, index, conf: dict | None = No
             windows.append(src)
             log.info("coarse: dense window %d: %d map features", len(windows), len(src))
         ids = src.features_in(gb)
+        visited += 1
         here = []
         for hi, (virt, _orig, view) in enumerate(keys):
             if not view:
@@ -427,4 +443,197 @@ def coarse_locate(gray: np.ndarray, K: np.ndarray, index, conf: dict | None = No
         best.reason = "no candidate gave a plausible pose with enough inliers"
     best.hypotheses.sort(key=lambda t: -t[2])
     best.candidates = cands[: max(tried, 8)]
+    best.budget = {"regions_searched": visited, "pnp_tests": tried}
     return best
+
+
+# --------------------------------------------------------------------------- index-based search
+
+#: the index search (``mode: index``, default): settings added to ``DEFAULTS``
+INDEX_DEFAULTS: dict[str, Any] = {
+    "mode": "index",  # index (region votes of the map index near the frame's footprint) | plain
+    "window_frac": 1.5,  # region window = this x the frame's diagonal seen at the map GSD
+    "stride_frac": 0.5,  # region stride = this x the window
+    "max_regions": 16,  # candidate budget: distinct regions searched at most per stage
+    "grow_frac": 0.25,  # a region is searched grown by this x the window on every side
+    "nprobe": 2,  # frame descriptors matched to the region features of their nearest words only
+    "index_scales": [1.0, 0.5, 0.25],  # frame resizes (the window assumes a GSD near the map's)
+    "frame_features_per_mpx": 3000,  # strongest frame features kept per Mpx of each resize
+    "nadir_first": True,  # the nadir hypothesis alone first, the tilts only when it is not enough
+    "direct_margin_m": 40.0,  # direct matching window margin around its PnP pose (within metres)
+    "index_max_seconds": 300.0,  # wall-time safeguard per stage's region search (not the budget)
+}
+
+
+class WordIndex:
+    """A map index whose ``knn`` compares each descriptor only with the candidate features that
+    share one of its ``nprobe`` nearest visual words (the inverted file's own restriction), so a
+    region's matching costs |frame| x nprobe x the region's features per word, not |frame| x the
+    region's features. Everything else is the wrapped index's."""
+
+    def __init__(self, index, nprobe: int = 2) -> None:
+        self._index, self._nprobe = index, int(nprobe)
+
+    def __getattr__(self, name: str):
+        return getattr(self._index, name)
+
+    def _region(self, ids: np.ndarray):
+        """The candidate features sorted by word, their float descriptors and squared norms
+        (kept for the next call with the same ids: every tilt hypothesis searches one region)."""
+        from georeg.index.features import dequantize
+
+        key = (len(ids), int(ids[0]), int(ids[-1]), int(ids.sum()))
+        if getattr(self, "_key", None) != key:
+            mw = np.asarray(self._index.word[ids], np.int64)
+            o = np.argsort(mw, kind="stable")
+            sid = ids[o]
+            md = dequantize(np.asarray(self._index.desc[np.sort(sid)]))[np.argsort(np.argsort(sid))]
+            self._key, self._reg = key, (sid, mw[o], md, (md**2).sum(axis=1))
+        return self._reg
+
+    def knn(self, q: np.ndarray, ids: np.ndarray, k: int = 2) -> tuple[np.ndarray, np.ndarray]:
+        n = len(q)
+        dist, fid = np.full((n, k), np.inf, np.float32), np.full((n, k), -1, np.int64)
+        ids = np.asarray(ids, np.int64)
+        if n == 0 or len(ids) == 0:
+            return dist, fid
+        qd = np.ascontiguousarray(q, np.float32)
+        _, qw = self._index.quantize(qd, self._nprobe)
+        sid, mw, md, mn = self._region(ids)
+        qq = np.repeat(np.arange(n), qw.shape[1])
+        ww = qw.ravel()
+        o = np.argsort(ww, kind="stable")
+        qq, ww = qq[o], ww[o]
+        uw, first = np.unique(ww, return_index=True)
+        last = np.r_[first[1:], len(ww)]
+        lo, hi = np.searchsorted(mw, uw, "left"), np.searchsorted(mw, uw, "right")
+        qn = (qd**2).sum(axis=1)
+        rows = []
+        for a, b, m0, m1 in zip(first.tolist(), last.tolist(), lo.tolist(), hi.tolist(), strict=True):
+            if m1 <= m0:
+                continue
+            qs = qq[a:b]
+            d2 = qn[qs, None] - 2.0 * (qd[qs] @ md[m0:m1].T) + mn[None, m0:m1]
+            kk = min(k, m1 - m0)
+            part = np.argpartition(d2, kk - 1, axis=1)[:, :kk] if kk < m1 - m0 else \
+                np.broadcast_to(np.arange(m1 - m0), (len(qs), m1 - m0))  # fmt: skip
+            rows.append((np.repeat(qs, kk), sid[m0 + part].ravel(),
+                         np.take_along_axis(d2, part, axis=1).ravel()))  # fmt: skip
+        if not rows:
+            return dist, fid
+        cq, cf, cd = (np.concatenate(c) for c in zip(*rows, strict=True))
+        o = np.lexsort((cd, cq))
+        cq, cf, cd = cq[o], cf[o], cd[o]
+        start = np.r_[0, np.flatnonzero(np.diff(cq)) + 1]
+        rank = np.arange(len(cq)) - np.repeat(start, np.diff(np.r_[start, len(cq)]))
+        keep = rank < k
+        dist[cq[keep], rank[keep]] = np.sqrt(np.maximum(cd[keep], 0.0))
+        fid[cq[keep], rank[keep]] = cf[keep]
+        return dist, fid
+
+
+def index_window_m(w: int, h: int, map_gsd: float, conf: dict) -> tuple[float, float]:
+    """(window, stride) of the region vote: the frame's footprint if its GSD were the map's."""
+    win = float(conf["window_frac"]) * float(map_gsd) * float(np.hypot(w, h))
+    return win, float(conf["stride_frac"]) * win
+
+
+def coarse_index(gray: np.ndarray, K: np.ndarray, index, map_gsd: float, conf: dict | None = None,
+                 prior: tuple | None = None) -> Coarse:  # fmt: skip
+    """Coarse location through the map index only, with a bounded cost on any map size.
+
+    Visual words of the frame (the tilt hypotheses and scales, pooled) vote for map windows of
+    about the frame's footprint at the map GSD (``MapIndex.rank_regions``: TF-IDF over the
+    inverted file, the SWIR search's region ranking); within a ``prior`` box (x0, y0, x1, y1)
+    only when given. The best ``max_regions`` are searched on the index's own features (no
+    dense re-extraction: the direct 2-D/3-D match re-extracts the footprint afterwards): nadir
+    vote, then PnP, as ``coarse_locate``. ``nadir_first``: the nadir hypothesis alone first; the
+    tilt hypotheses only when it gives no pose with 2 x ``min_inliers``. ``budget`` in the result
+    records the regions ranked and searched and the PnP tests run over both stages (the
+    a-contrario count of the coarse step).
+    """
+    c = {**DEFAULTS, **INDEX_DEFAULTS, **(conf or {})}
+    feat_conf = index.meta.get("features_conf") or {}
+    t0 = time.perf_counter()
+    h, w = gray.shape
+    hyps = [(0.0, 0.0)] + [
+        (float(t), float(d)) for t in c["tilts_deg"] if t for d in (0, 90, 180, 270)
+    ]
+    fconf = {**feat_conf, "max_features_per_mpx": c["frame_features_per_mpx"]}
+    kc = {**c, "scales": c["index_scales"]}
+    win, stride = index_window_m(w, h, map_gsd, c)
+    stages = [1, len(hyps)] if c["nadir_first"] and len(hyps) > 1 else [len(hyps)]
+    keys: list = []
+    res, spent = Coarse(False, reason="no frame features"), {"regions_searched": 0, "pnp_tests": 0}
+    times = {"features_s": 0.0, "rank_s": 0.0, "search_s": 0.0}
+    ranked, n_desc = 0, 0
+    for n in stages:
+        t1 = time.perf_counter()
+        keys += [frame_keys(gray, kc, fconf, K, hy) for hy in hyps[len(keys) : n]]
+        times["features_s"] += time.perf_counter() - t1
+        all_desc = np.concatenate([k[0].desc for k in keys])
+        n_desc = len(all_desc)
+        if n_desc < 10:
+            continue
+        t2 = time.perf_counter()
+        regions, ranked = _index_regions(index, all_desc, win, stride, int(c["max_regions"]), prior)
+        t3 = time.perf_counter()
+        times["rank_s"] += t3 - t2
+        res = _index_search(K, index, c, keys, hyps[:n], regions, (w, h), win, prior, t0)
+        times["search_s"] += time.perf_counter() - t3
+        for k in spent:
+            spent[k] += res.budget.get(k, 0)
+        if res.ok and res.inliers >= 2 * int(c["min_inliers"]):
+            break
+    res.budget = {"mode": "index", "window_m": round(win, 1), "stride_m": round(stride, 1),
+                  "regions_ranked": ranked, "regions_budget": int(c["max_regions"]), **spent,
+                  "hypotheses": len(keys), "prior": list(prior) if prior is not None else None,
+                  "frame_features": int(n_desc), **{k: round(v, 3) for k, v in times.items()}}  # fmt: skip
+    return res
+
+
+def _index_regions(index, desc: np.ndarray, win: float, stride: float, budget: int,
+                   prior: tuple | None) -> tuple[list, int]:  # fmt: skip
+    """The best ``budget`` distinct regions voted by ``desc`` (meeting ``prior``), and how many
+    were ranked; a one-tile map (idf = 0) or no shared word: the whole map (or prior)."""
+    regions = index.rank_regions(desc, win, stride, top=None)  # a few thousand windows at 1 Gpx
+    if prior is not None:
+        regions = [(b, s) for b, s in regions
+                   if b[0] < prior[2] and b[2] > prior[0] and b[1] < prior[3] and b[3] > prior[1]]  # fmt: skip
+    ranked = len(regions)
+    regions = _distinct_regions(regions, win, budget)
+    if not regions:
+        tb = np.asarray(index.tile_bounds, float)
+        tb = tb[np.isfinite(tb).all(axis=1)]
+        if len(tb):
+            b = (tb[:, 0].min(), tb[:, 1].min(), tb[:, 2].max(), tb[:, 3].max())
+            if prior is not None:
+                b = (max(b[0], prior[0]), max(b[1], prior[1]), min(b[2], prior[2]), min(b[3], prior[3]))
+            regions = [(b, 0.0)]
+    return regions, ranked
+
+
+def _index_search(K: np.ndarray, index, c: dict, keys: list, hyps: list, regions: list,
+                  wh: tuple[int, int], win: float, prior: tuple | None, t0: float) -> Coarse:  # fmt: skip
+    """``_search_regions`` on the index's features (word-restricted matching), regions grown by
+    ``grow_frac`` x the window, features clipped to the prior grown by half a window (a prior
+    bounds where the frame's centre can be)."""
+    c = {**c, "grow_m": float(c["grow_frac"]) * win, "dense_windows": int(c["max_regions"])}
+    src = WordIndex(index, int(c["nprobe"])) if int(c["nprobe"]) > 0 else index
+    clip = None if prior is None else (prior[0] - 0.5 * win, prior[1] - 0.5 * win,
+                                       prior[2] + 0.5 * win, prior[3] + 0.5 * win)  # fmt: skip
+    c["max_seconds"] = float(c["index_max_seconds"])  # the region count is the budget; a safeguard
+    return _search_regions(K, src, c, keys, hyps, regions, None, wh, time.perf_counter(), clip)
+
+
+def _distinct_regions(regions: list, win: float, n: int) -> list:
+    """The best ``n`` regions whose centres are at least half a window apart (overlapping
+    sliding windows of one place count once)."""
+    out: list = []
+    for b, s in regions:
+        cx, cy = 0.5 * (b[0] + b[2]), 0.5 * (b[1] + b[3])
+        if all(np.hypot(cx - 0.5 * (o[0] + o[2]), cy - 0.5 * (o[1] + o[3])) >= 0.5 * win for o, _ in out):
+            out.append((b, s))
+            if len(out) >= n:
+                break
+    return out

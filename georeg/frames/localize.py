@@ -30,7 +30,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from georeg.frames.coarse import Coarse, coarse_locate
+from georeg.frames.coarse import INDEX_DEFAULTS, Coarse, coarse_index, coarse_locate
 from georeg.frames.direct import DEFAULTS as DIRECT_DEFAULTS
 from georeg.frames.direct import (
     Matches,
@@ -169,6 +169,7 @@ class MapSources:
                         "%s", self.flat_z, FLAT_GROUND_WARNING)  # fmt: skip
         self.window_cache: dict = {}  # the whole (small) map's dense features, for every frame
         self.feature_map = None  # earlier sets' feature maps (georeg.frames.feature_map), tried first
+        self.prior_box: tuple | None = None  # the set's location prior (map CRS box), if any
 
     def ground_z(self, C: np.ndarray, radius: float = 150.0) -> float:
         """Median elevation of the map features within ``radius`` of C (x, y), the radius grown
@@ -372,6 +373,32 @@ def camera_from_matches(mt: Matches, w: int, h: int, vconf: dict, c: dict, rec: 
             "source": f"estimated ({where} 2D-3D matches, {how})"}
 
 
+def run_coarse(gray: np.ndarray, K: np.ndarray, maps: MapSources, conf: dict | None) -> Coarse:
+    """The coarse search of ``frame_loc.coarse.mode``: ``index`` (``coarse_index``: region votes
+    of the map index at the frame's footprint, bounded budget, within the set's ``prior`` box when
+    given) or ``plain`` (``coarse_locate``: 400 m windows re-extracted densely, then the rest
+    of the map)."""
+    c = conf or {}
+    mode = str(c.get("mode", INDEX_DEFAULTS["mode"]))
+    if mode == "plain":
+        co = coarse_locate(gray, K, maps.coarse_index, c, maps.dense)
+        co.budget = {"mode": "plain", **co.budget}
+        return co
+    if mode != "index":
+        raise ValueError(f"unknown frame_loc.coarse.mode {mode!r} (index | plain)")
+    return coarse_index(gray, K, maps.coarse_index, maps.gsd, c, maps.prior_box)
+
+
+def direct_conf(vconf: dict, start: str, co: Coarse, coarse_conf: dict | None) -> dict:
+    """Direct matching settings for one start: around the PnP pose of the index coarse search
+    (within metres of the truth) the window margin is ``coarse.direct_margin_m``, not the
+    ``direct.margin_m`` that covers a vote's error; the same map resolution either way."""
+    if start != "coarse PnP" or co.budget.get("mode") != "index":
+        return vconf
+    m = {**INDEX_DEFAULTS, **(coarse_conf or {})}["direct_margin_m"]
+    return {**vconf, "margin_m": float(m)}
+
+
 def localize_image(
     rgb: np.ndarray, path: str, camera: dict | None, maps: MapSources, conf: dict
 ) -> tuple[dict, Any]:
@@ -430,7 +457,7 @@ def localize_image(
         if not hyps and map_px <= int(vconf["whole_map_first_px"]):
             whole_map()  # a small map: cheaper than the coarse search
         t0c = time.perf_counter()
-        co = (coarse_locate(gray, K, maps.coarse_index, c["coarse"], maps.dense) if not hyps and not fm_start else
+        co = (run_coarse(gray, K, maps, c["coarse"]) if not hyps and not fm_start else
               Coarse(False, reason="not run: the " + ("feature map gave a pose" if rec.get("feature_map", {}).get("strong")
                                                       else "whole-map direct matching gave a pose" if hyps
                                                       else "feature map gave a start")))  # fmt: skip
@@ -442,7 +469,7 @@ def localize_image(
         co, K = None, None
         for fac in c["focal_factors"]:
             Kf, _ = camera_matrix(None, w, h, fac * w)
-            r = coarse_locate(gray, Kf, maps.coarse_index, c["coarse"], maps.dense)
+            r = run_coarse(gray, Kf, maps, c["coarse"])
             log.info("focal search: fx = %.0f px -> %s, %d inliers", fac * w, r.ok, r.inliers)
             if co is None or (r.ok and r.inliers > co.inliers):
                 co, K = r, Kf
@@ -470,7 +497,7 @@ def localize_image(
     rec["ground"] = ({"source": "dsm"} if maps.dsm else
                      {"source": "flat (no DSM given)", "z": maps.flat_z, "warning": FLAT_GROUND_WARNING})  # fmt: skip
     rec["coarse"] = {"ok": co.ok, "inliers": co.inliers, "reason": co.reason,
-                     "candidates": co.candidates}  # fmt: skip
+                     "budget": co.budget, "candidates": co.candidates}  # fmt: skip
     starts = [(co.R, co.C, "coarse PnP")] if co.ok else []
     if fm_start:  # the feature-map pose: the first start of the direct matching
         fp = rec["feature_map"]["pose"]
@@ -485,7 +512,7 @@ def localize_image(
     for R0, C0, how in starts if not hyps else []:
         cam0 = cam_of(R0, C0)
         dr, mt = direct_pose(gray, cam0, maps.ortho, maps.dsm, feat_conf, maps.gsd,
-                             maps.ground_z(C0), vconf, maps.flat_z)  # fmt: skip
+                             maps.ground_z(C0), direct_conf(vconf, how, co, c["coarse"]), maps.flat_z)  # fmt: skip
         windows.append(mt)
         rec.setdefault("direct_attempts", []).append({"start": how, **dr.info})
         if dr.pnp.ok and dr.pnp.inliers >= min_inl:
@@ -662,12 +689,24 @@ def evaluate(rec: dict, truth: dict) -> dict:
     return out
 
 
+def set_prior(maps: MapSources, prior: Any, set_name: str = "<set>") -> dict | None:
+    """The set's location prior as a box in the map CRS on ``maps`` (the index coarse search keeps
+    to it); what poses.json records of it (None without a prior). A bad prior: ``InputError``."""
+    from georeg.io.prior import prior_bounds, prior_record
+
+    key = f"frames.{set_name}.prior"
+    maps.prior_box = prior_bounds(prior, maps.crs_wkt, where=key, key=key)
+    return prior_record(prior, maps.prior_box)
+
+
 def localize_set(images: Any, camera: dict | None, index_dir, ortho_vrt, dsm_vrt, laz_paths,
                  conf: dict, out_dir, truth_path: str | None = None, ground_z: float = 0.0,
-                 feature_maps: list | None = None) -> list[dict]:  # fmt: skip
+                 feature_maps: list | None = None, prior: Any = None,
+                 set_name: str = "<set>") -> list[dict]:  # fmt: skip
     """Rule ``localize_frames``: every frame of a set -> results/frames/{set}/. ``dsm_vrt`` None:
     the ground is the plane z = ``ground_z`` (recorded as ``ground`` in every pose).
-    ``feature_maps``: earlier sets' sfm_points.laz, tried first (``georeg.frames.feature_map``)."""
+    ``feature_maps``: earlier sets' sfm_points.laz, tried first (``georeg.frames.feature_map``).
+    ``prior`` (``frames.<set>.prior``, ``georeg.io.prior``): the coarse search keeps to its box."""
     out = Path(out_dir)
     paths = frame_images(images)
     if not paths:
@@ -686,6 +725,7 @@ def localize_set(images: Any, camera: dict | None, index_dir, ortho_vrt, dsm_vrt
         from georeg.frames.feature_map import load_feature_maps
 
         maps.feature_map = load_feature_maps(feature_maps, maps.crs_wkt, maps.bounds(), conf.get("feature_map"))
+    prior_rec = set_prior(maps, prior, set_name)
     truth = {}
     if truth_path:
         import json
@@ -694,6 +734,8 @@ def localize_set(images: Any, camera: dict | None, index_dir, ortho_vrt, dsm_vrt
     poses = []
     for p in paths:
         rec, (und, rend) = localize_frame(p, camera, maps, conf)
+        if prior_rec is not None:
+            rec["prior"] = prior_rec
         if Path(p).name in truth:
             rec["evaluation"] = evaluate(rec, truth[Path(p).name])
         a = float(conf.get("overlay_alpha", DEFAULTS["overlay_alpha"]))

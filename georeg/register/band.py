@@ -276,8 +276,8 @@ def write_query_band(
     import rasterio
 
     from georeg.io.atomic import atomic_path, write_json
+    from georeg.io.prior import check_prior
     from georeg.io.query import open_query
-    from georeg.register.prior import check_prior
 
     t0 = time.perf_counter()
     try:

@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from georeg.io.prior import prior_bounds, prior_record
 from georeg.register import lidar_check, matching, ortho_check, small
-from georeg.register.prior import prior_bounds, prior_record
 from georeg.register.search import (
     MapSource,
     MapView,
@@ -324,7 +324,7 @@ def register_query(
     """The workflow's search_part jobs and fuse_parts in one process (the library's entry point):
     split plan, every part, the other sources (the small-query ones when ``read_window`` is
     given), fusion and the verifier's terms (``decide``). ``prior``: an approximate location
-    (``georeg.register.prior``: ``{"centre": [x, y], "radius_m": r}`` or ``{"box": [x0, y0, x1,
+    (``georeg.io.prior``: ``{"centre": [x, y], "radius_m": r}`` or ``{"box": [x0, y0, x1,
     y1]}``, ``"crs": "map"`` (default) or ``"lonlat"``; or map bounds): the map the sources see
     is clipped to it. Returns the fused result with ``split``, ``parts``, ``sources``, the
     terms' records and ``prior``."""

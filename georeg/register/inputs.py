@@ -19,12 +19,12 @@ from typing import Any
 import pyproj
 
 from georeg.io.errors import GeoregError
+from georeg.io.prior import check_prior, prior_bounds
 from georeg.io.query import open_query
 from georeg.io.raster import open_raster
 from georeg.io.video import frame_images, jpeg_cut_short
 from georeg.map import pdal_points
 from georeg.register.band import parse_band_spec, resolve_band
-from georeg.register.prior import check_prior, prior_bounds
 
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".webm"}
 
@@ -196,6 +196,13 @@ class _Checker:
             t = fs.get("truth")
             if t and not self.made(t) and not Path(t).exists():
                 self.add(f"{key}.truth: {t}: file not found")
+            if fs.get("prior") is not None:
+                from georeg.io.prior import check_prior
+
+                try:
+                    check_prior(fs["prior"])
+                except ValueError as exc:
+                    self.add(f"{key}.prior: {exc}")
 
 
 def _centre_lonlat(ds: Any) -> tuple[float, float]:

@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 
 from georeg.index.features import dequantize, detect_and_describe, resample
+from georeg.io.prior import prior_bounds, prior_record
 from georeg.register import acceptance, matching, model_choice
-from georeg.register.prior import prior_bounds, prior_record
 
 log = logging.getLogger(__name__)
 

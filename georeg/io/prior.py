@@ -1,8 +1,7 @@
-"""An optional approximate location of a query (``queries.<name>.prior``).
+"""An optional approximate location (``queries.<name>.prior``, ``frames.<set>.prior``): parsed,
+checked and turned into a box in the map CRS, shared by the register and frames stages.
 
-Without it the search is GPS-free: every source sees the whole map. With it the map every source
-sees is clipped to the prior's box (``MapSource.clipped``): the candidate regions, the small-query
-windows and the CFOG null scan keep to it, so the search is faster and counts fewer tests.
+Without it a search is GPS-free (the whole map); with it the search keeps to the prior's box.
 
 Forms (``crs``: ``map``, the default, or ``lonlat``):
 
@@ -74,10 +73,12 @@ def _metres_per_unit(crs: Any) -> float:
     return 1.0
 
 
-def prior_bounds(prior: Any, crs_wkt: str | None, where: str | None = None) -> Bounds | None:
+def prior_bounds(prior: Any, crs_wkt: str | None, where: str | None = None,
+                 key: str = "queries.<name>.prior") -> Bounds | None:
     """The prior's box in the map CRS (None: no prior). ``crs_wkt``: the map's CRS (needed for
     ``lonlat`` and for radii on a map in feet). ``where``: a file to name in the error (the
-    error is then ``georeg.io.errors.InputError``, else ValueError)."""
+    error is then ``georeg.io.errors.InputError``, else ValueError); ``key``: the config key
+    named in its hint."""
     try:
         p = check_prior(prior)
         if p is None:
@@ -108,11 +109,12 @@ def prior_bounds(prior: Any, crs_wkt: str | None, where: str | None = None) -> B
             raise
         from georeg.io.errors import InputError
 
-        raise InputError(where, str(exc), "see config/README.md, queries.<name>.prior") from None
+        raise InputError(where, str(exc), f"see config/README.md, {key}") from None
 
 
 def prior_record(prior: Any, bounds: Bounds | None) -> dict[str, Any] | None:
-    """What registration.json records of the prior: as given and its box in the map CRS."""
+    """What a record (registration.json, poses.json) keeps of the prior: as given and its box
+    in the map CRS."""
     if bounds is None:
         return None
     given = prior if isinstance(prior, dict) else list(prior)
