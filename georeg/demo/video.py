@@ -229,30 +229,46 @@ def plan_flight(world: World, conf: dict, intr: dict, rng: np.random.Generator) 
 
 
 class CloudBlocks:
-    """A cloud sorted into ``block_m`` ground squares, so that a camera's points are cheap to find."""
+    """A cloud sorted into ``block_m`` ground squares (column by column), so that a camera's
+    points are cheap to find: every block is cut into chunks of at most ``chunk`` consecutive
+    points (strips of its raster rows for a height-field cloud) with their bounding boxes; the
+    chunks in view form runs of the sorted cloud, in its order."""
 
-    def __init__(self, cloud: PointCloud, block_m: float = 12.0) -> None:
+    def __init__(self, cloud: PointCloud, block_m: float = 12.0, chunk: int = 1024) -> None:
         ij = np.floor((cloud.xyz[:, :2] - cloud.xyz[:, :2].min(0)) / block_m).astype(np.int64)
         key = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
         order = np.argsort(key, kind="stable")
         self.cloud = PointCloud(cloud.xyz[order], cloud.rgb[order], cloud.spacing)
-        _, self.start, self.counts = np.unique(key[order], return_index=True, return_counts=True)
+        _, b0, bn = np.unique(key[order], return_index=True, return_counts=True)
+        per = -(-bn // chunk)  # chunks per block
+        k = np.arange(int(per.sum())) - np.repeat(np.cumsum(per) - per, per)
+        self.start = np.repeat(b0, per) + k * chunk
+        self.counts = np.minimum(chunk, np.repeat(b0 + bn, per) - self.start)
         lo = np.minimum.reduceat(self.cloud.xyz, self.start)
         hi = np.maximum.reduceat(self.cloud.xyz, self.start)
         pick = np.array([[i & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], bool)
-        self.corners = np.where(pick[None], hi[:, None], lo[:, None])  # (blocks, 8, 3)
+        self.corners = np.where(pick[None], hi[:, None], lo[:, None])  # (chunks, 8, 3)
 
-    def visible(self, cam: PinholeCamera, near: float = 0.5) -> PointCloud:
-        """The points of the blocks whose box projects onto ``cam``'s image (or is behind it)."""
+    def visible(self, cam: PinholeCamera, near: float = 0.5, pad_px: float = 8.0) -> PointCloud:
+        """The points of the chunks whose box projects onto ``cam``'s image grown by ``pad_px``
+        (``render``'s largest splat reaches in from there) or crosses the ``near`` plane; a box
+        wholly behind it has no point ``render`` would draw."""
         uv, z = cam.project(self.corners.reshape(-1, 3))
         uv, z = uv.reshape(-1, 8, 2), z.reshape(-1, 8)
         lo, hi = uv.min(1), uv.max(1)
-        keep = (z <= near).any(1) | (
-            (hi[:, 0] >= -1) & (lo[:, 0] <= cam.width) & (hi[:, 1] >= -1) & (lo[:, 1] <= cam.height)
-        )
-        start, count = self.start[keep], self.counts[keep]
-        idx = np.arange(int(count.sum())) + np.repeat(start - (np.cumsum(count) - count), count)
-        return PointCloud(self.cloud.xyz[idx], self.cloud.rgb[idx], self.cloud.spacing)
+        front = z > near
+        keep = front.any(1) & (~front.all(1) | (
+            (hi[:, 0] >= -pad_px) & (lo[:, 0] <= cam.width + pad_px)
+            & (hi[:, 1] >= -pad_px) & (lo[:, 1] <= cam.height + pad_px)
+        ))  # fmt: skip
+        # runs of consecutive kept chunks -> contiguous slices of the sorted cloud
+        edge = np.diff(np.r_[0, keep.astype(np.int8), 0])
+        first, last = np.flatnonzero(edge == 1), np.flatnonzero(edge == -1) - 1
+        runs = list(zip(self.start[first], self.start[last] + self.counts[last], strict=True))
+        c = self.cloud
+        xyz = np.concatenate([c.xyz[i:j] for i, j in runs]) if runs else c.xyz[:0]
+        rgb = np.concatenate([c.rgb[i:j] for i, j in runs]) if runs else c.rgb[:0]
+        return PointCloud(xyz, rgb, self.cloud.spacing)
 
 
 def _write_mp4(path: Path, frames_bgr, n: int, fps: float, size: tuple[int, int]) -> None:

@@ -146,6 +146,21 @@ class Render:
         return xyz, ok
 
 
+def _depth_order(zz: np.ndarray, near: float) -> np.ndarray:
+    """``np.argsort(zz, kind="stable")`` of float32 depths, faster: depths above ``near`` >= 0 are
+    positive, so their bit patterns sort as their values and (bits << 32 | index) is a unique
+    int64 key whose plain sort is the stable order."""
+    n = len(zz)
+    if near < 0 or n >= 2**31:
+        return np.argsort(zz, kind="stable")
+    key = zz.view(np.int32).astype(np.int64)
+    key <<= 32
+    key |= np.arange(n, dtype=np.int64)
+    key.sort()
+    key &= 0xFFFFFFFF
+    return key
+
+
 def render(
     cloud: PointCloud, cam: PinholeCamera, max_splat_px: int = 6, near: float = 0.5,
     background: int = 0,
@@ -157,10 +172,12 @@ def render(
     """
     W, H = cam.width, cam.height
     uv, z = cam.project(cloud.xyz)
-    half = np.ceil(
-        0.5 * cam.fx * np.broadcast_to(cloud.spacing, z.shape) / np.maximum(z, near) * 1.1 - 0.5
-    )
-    half = np.clip(np.nan_to_num(half, nan=0), 0, max_splat_px).astype(np.int32)
+    half = np.maximum(z, near)  # in place, the same arithmetic as ceil(0.5 fx s / z 1.1 - 0.5)
+    np.divide(0.5 * cam.fx * np.broadcast_to(cloud.spacing, z.shape), half, out=half)
+    half *= 1.1
+    half -= 0.5
+    np.ceil(half, out=half)
+    half = np.clip(np.nan_to_num(half, nan=0, copy=False), 0, max_splat_px).astype(np.int32)
     m = (z > near) & (uv[:, 0] > -half - 1) & (uv[:, 0] < W + half) & (uv[:, 1] > -half - 1)
     m &= uv[:, 1] < H + half
     idx_pt = np.flatnonzero(m)
@@ -173,7 +190,7 @@ def render(
     # the points' centres followed by a (2h + 1)^2 minimum filter (cv2.erode: exactly the square
     # splats' minimum), on a canvas padded by h so that points centred just outside still count.
     n = len(idx_pt)
-    by_z = np.argsort(zz, kind="stable")
+    by_z = _depth_order(zz, near)
     rank = np.empty(n, np.float64)  # exact integers; cv2.erode takes float64
     rank[by_z] = np.arange(n)
     best = np.full((H, W), float(n))
