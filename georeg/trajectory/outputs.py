@@ -25,8 +25,9 @@ from xml.sax.saxutils import escape
 import numpy as np
 import pyproj
 
+from georeg.frames.feature_map import descriptor_path, write_feature_map
 from georeg.frames.outputs import write_feature_collection
-from georeg.io.atomic import atomic_path, write_text
+from georeg.io.atomic import write_text
 
 
 def view_angles(R: np.ndarray) -> tuple[float, float, float]:
@@ -141,29 +142,7 @@ def write_kml(path: str | Path, poses: list[dict], crs_wkt: str, z_ground: float
 
 def write_point_map(laz_path: str | Path, xyz: np.ndarray, rgb: np.ndarray, track_len: np.ndarray,
                     descriptors: np.ndarray, crs_wkt: str) -> Path:  # fmt: skip
-    """The geo-registered 3-D feature map: LAZ (map CRS) + descriptors beside it (.npy)."""
-    import laspy
-
-    from georeg.map.lidar import output_crs
-
-    xyz = np.asarray(xyz, float).reshape(-1, 3)
-    header = laspy.LasHeader(point_format=7, version="1.4")
-    header.scales = np.array([0.001, 0.001, 0.001])
-    if len(xyz):
-        header.offsets = np.floor(xyz.min(axis=0))
-    header.add_crs(output_crs(pyproj.CRS.from_user_input(crs_wkt)))
-    header.add_extra_dims([laspy.ExtraBytesParams("track_len", np.uint16, "SfM track length"),
-                           laspy.ExtraBytesParams("point_id", np.uint32, "row in the descriptors")])  # fmt: skip
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    rgb16 = np.asarray(rgb, np.uint16).reshape(-1, 3) * 257
-    las.red, las.green, las.blue = rgb16[:, 0], rgb16[:, 1], rgb16[:, 2]
-    las.track_len = np.clip(np.asarray(track_len), 0, 65535).astype(np.uint16)
-    las.point_id = np.arange(len(xyz), dtype=np.uint32)
-    with atomic_path(laz_path) as tmp:
-        las.write(str(tmp))
-    desc_path = Path(laz_path).with_name(Path(laz_path).stem + "_descriptors.npy")
-    with atomic_path(desc_path) as tmp:
-        with open(tmp, "wb") as fh:
-            np.save(fh, np.asarray(descriptors, np.uint8))
-    return desc_path
+    """The geo-registered 3-D feature map: LAZ (map CRS) + descriptors beside it (.npy), in the
+    format the frames stage reads back (``georeg.frames.feature_map``)."""
+    write_feature_map(laz_path, xyz, rgb, descriptors, crs_wkt, track_len)
+    return descriptor_path(laz_path)
