@@ -128,7 +128,8 @@ def test_localize_on_padded_map_and_elsewhere(synth, tmp_path):
     root, _ = synth
     maps = MapSources(root / "map" / "index", root / "map" / "ortho.vrt", root / "map" / "dsm.vrt")
     conf = {"direct": {"whole_map_first_px": 0, "whole_map_px": 0}, "search": {"enabled": False},
-            "render_after_direct": False, "refine": {"enabled": False}}  # fmt: skip
+            "render_after_direct": False, "refine": {"enabled": False},
+            "coarse": {"index_min_px": 0}}  # the index search on this small map  # fmt: skip
     with rasterio.open(root / "case" / "map_ortho.tif") as c:
         cx, cy = (c.bounds.left + c.bounds.right) / 2, (c.bounds.bottom + c.bounds.top) / 2
     gray, K, R, C = nadir_frame(str(root / "map" / "ortho.vrt"), (cx - 10, cy + 15), 1.0, -50.0, 100.0)
@@ -181,7 +182,8 @@ def test_real_odm_frames_in_padded_map(tmp_path):
         truth = json.loads((case / "truth" / f"{fid}.json").read_text())
         cam = {k: truth["intrinsics"][k] for k in ("fx", "fy", "cx", "cy")}
         cam["dist"] = truth["intrinsics"]["dist"]
-        rec, _ = localize_frame(str(case / "queries" / f"{fid}.png"), cam, maps, {})
+        rec, _ = localize_frame(str(case / "queries" / f"{fid}.png"), cam, maps,
+                                {"coarse": {"index_min_px": 0}})  # a 9 Mpx map
         assert rec["status"] == "registered", rec.get("reason")
         assert rec["coarse"]["budget"]["mode"] == "index"
         err = np.linalg.norm(np.asarray(rec["camera_center_xyz"]) - truth["camera_center_xyz"])
@@ -189,7 +191,7 @@ def test_real_odm_frames_in_padded_map(tmp_path):
     ngi = DATA / "frames_dev" / "ngi"
     truth = json.loads((ngi / "truth" / "0182.json").read_text())
     cam = {k: truth["intrinsics"][k] for k in ("fx", "fy", "cx", "cy")}
-    rec, _ = localize_frame(str(ngi / "queries" / "0182.png"), cam, maps, {})
+    rec, _ = localize_frame(str(ngi / "queries" / "0182.png"), cam, maps, {"coarse": {"index_min_px": 0}})
     assert rec["status"] == "not_found"
 
 

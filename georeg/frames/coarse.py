@@ -452,6 +452,8 @@ def _search_regions(K: np.ndarray, index, c: dict, keys: list, hyps: list, regio
 #: the index search (``mode: index``, default): settings added to ``DEFAULTS``
 INDEX_DEFAULTS: dict[str, Any] = {
     "mode": "index",  # index (region votes of the map index near the frame's footprint) | plain
+    "index_min_px": 16_000_000,  # maps below this many pixels take the plain search (the index
+    # search missed the demo's 35 deg oblique frame on its 4.2 Mpx map, which plain registers)
     "window_frac": 1.5,  # region window = this x the frame's diagonal seen at the map GSD
     "stride_frac": 0.5,  # region stride = this x the window
     "max_regions": 16,  # candidate budget: distinct regions searched at most per stage

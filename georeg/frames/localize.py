@@ -376,10 +376,12 @@ def camera_from_matches(mt: Matches, w: int, h: int, vconf: dict, c: dict, rec: 
 def run_coarse(gray: np.ndarray, K: np.ndarray, maps: MapSources, conf: dict | None) -> Coarse:
     """The coarse search of ``frame_loc.coarse.mode``: ``index`` (``coarse_index``: region votes
     of the map index at the frame's footprint, bounded budget, within the set's ``prior`` box when
-    given) or ``plain`` (``coarse_locate``: 400 m windows re-extracted densely, then the rest
+    given; on maps of at least ``index_min_px`` pixels, the plain search below that) or ``plain`` (``coarse_locate``: 400 m windows re-extracted densely, then the rest
     of the map)."""
     c = conf or {}
     mode = str(c.get("mode", INDEX_DEFAULTS["mode"]))
+    if mode == "index" and maps.whole_map_px() < int(c.get("index_min_px", INDEX_DEFAULTS["index_min_px"])):
+        mode = "plain"  # a map small enough for the plain search, which is the surer there
     if mode == "plain":
         co = coarse_locate(gray, K, maps.coarse_index, c, maps.dense)
         co.budget = {"mode": "plain", **co.budget}
