@@ -66,10 +66,20 @@ def _strip(obj):
 
 
 def fingerprint(path: Path) -> str:
-    """Hash of a product; JSON without its timing keys."""
+    """Hash of a product; JSON without its timing keys; a GeoPackage by its tables' rows (its
+    ``gpkg_contents.last_change`` is the time of writing, as the standard asks)."""
     if path.suffix == ".json":
         data = _strip(json.loads(path.read_text()))
         return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
+    if path.suffix == ".gpkg":
+        import sqlite3
+
+        with sqlite3.connect(path) as db:
+            tables = [r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type = 'table' ORDER BY name")]
+            rows = {t: sorted(map(repr, db.execute(f'SELECT * FROM "{t}"'))) for t in tables if t != "gpkg_contents"}
+            rows["gpkg_contents"] = sorted(map(repr, db.execute(
+                "SELECT table_name, data_type, identifier, description, min_x, min_y, max_x, max_y, srs_id FROM gpkg_contents")))
+        return hashlib.sha256(repr(rows).encode()).hexdigest()
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
