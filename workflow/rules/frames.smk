@@ -8,25 +8,6 @@ from georeg.io.video import frame_images
 FRAME_LOC = {k: v for k, v in (config.get("frame_loc") or {}).items() if k != "demo_frames"}
 
 
-def feature_map_laz(name):
-    """The feature map a frame set writes: feature_map.laz (write_feature_map), else a trajectory
-    set's sfm_points.laz; a path (not a set name) is itself."""
-    fs = (config.get("frames") or {}).get(name)
-    if fs is None:
-        return name
-    if fs.get("write_feature_map"):
-        return f"results/frames/{name}/feature_map.laz"
-    if name in VIDEO_SETS:
-        return f"results/frames/{name}/sfm_points.laz"
-    raise ValueError(f"frames: feature map {name!r} is an image set without write_feature_map: "
-                     "it writes no feature map")
-
-
-def frame_set_feature_maps(fset):
-    """The feature maps frame set ``fset`` uses (frames.<set>.feature_maps)."""
-    return [feature_map_laz(f) for f in config["frames"][fset].get("feature_maps") or []]
-
-
 rule localize_frames:
     input:
         images=lambda wc: frame_images(config["frames"][wc.fset].get("images")),
