@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from gpkg_digest import gpkg_digest
 from test_map_synthetic import make_las, make_ortho, scene_points
 from test_query_io import write_envi
 
@@ -72,14 +73,7 @@ def fingerprint(path: Path) -> str:
         data = _strip(json.loads(path.read_text()))
         return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
     if path.suffix == ".gpkg":
-        import sqlite3
-
-        with sqlite3.connect(path) as db:
-            tables = [r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type = 'table' ORDER BY name")]
-            rows = {t: sorted(map(repr, db.execute(f'SELECT * FROM "{t}"'))) for t in tables if t != "gpkg_contents"}
-            rows["gpkg_contents"] = sorted(map(repr, db.execute(
-                "SELECT table_name, data_type, identifier, description, min_x, min_y, max_x, max_y, srs_id FROM gpkg_contents")))
-        return hashlib.sha256(repr(rows).encode()).hexdigest()
+        return gpkg_digest(path)
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
