@@ -246,6 +246,17 @@ class Points:
 _FIELDS = ("x", "y", "z", "classification", "return_number", "number_of_returns", "intensity")
 
 
+def bounds_in_file_crs(bounds: tuple, map_crs, file_crs) -> tuple:
+    """A map-CRS box in a point file's CRS, padded by 1 % (the points are pre-selected with it
+    before their x/y are reprojected)."""
+    if file_crs == map_crs:
+        return tuple(bounds)
+    back = Transformer.from_crs(map_crs, file_crs, always_xy=True)
+    b = back.transform_bounds(*bounds, densify_pts=21)
+    pad = 0.01 * max(b[2] - b[0], b[3] - b[1])
+    return (b[0] - pad, b[1] - pad, b[2] + pad, b[3] + pad)
+
+
 def iter_chunks(
     info: LasInfo,
     map_crs: PCRS,
@@ -259,15 +270,7 @@ def iter_chunks(
     """
     same = info.crs == map_crs
     tr = None if same else Transformer.from_crs(info.crs, map_crs, always_xy=True)
-    pre = None
-    if bounds is not None:
-        if same:
-            pre = bounds
-        else:
-            back = Transformer.from_crs(map_crs, info.crs, always_xy=True)
-            b = back.transform_bounds(*bounds, densify_pts=21)
-            pad = 0.01 * max(b[2] - b[0], b[3] - b[1])
-            pre = (b[0] - pad, b[1] - pad, b[2] + pad, b[3] + pad)
+    pre = None if bounds is None else bounds_in_file_crs(bounds, map_crs, info.crs)
     seen = 0
     try:
         with laspy.open(info.path) as reader:

@@ -263,13 +263,7 @@ def iter_chunks(
     tr = None if same else Transformer.from_crs(info.crs, map_crs, always_xy=True)
     stages = [reader_stage(info.path)]
     if bounds is not None:
-        if same:
-            pre = bounds
-        else:
-            back = Transformer.from_crs(map_crs, info.crs, always_xy=True)
-            b = back.transform_bounds(*bounds, densify_pts=21)
-            pad = 0.01 * max(b[2] - b[0], b[3] - b[1])
-            pre = (b[0] - pad, b[1] - pad, b[2] + pad, b[3] + pad)
+        pre = lidar.bounds_in_file_crs(bounds, map_crs, info.crs)
         stages.append({"type": "filters.crop", "bounds": f"([{pre[0]!r},{pre[2]!r}],[{pre[1]!r},{pre[3]!r}])"})
     try:
         for arr in pdal.Pipeline(json.dumps(stages)).iterator(chunk_size=int(chunk_points)):
