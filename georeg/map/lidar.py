@@ -246,6 +246,14 @@ class Points:
 _FIELDS = ("x", "y", "z", "classification", "return_number", "number_of_returns", "intensity")
 
 
+def in_bounds(pts: Points, x: np.ndarray, y: np.ndarray, bounds: tuple | None) -> Points:
+    """The points whose map-CRS x/y fall in ``bounds`` (left/top edges in, right/bottom out, so
+    neighbouring tiles never share a point); all of them without bounds."""
+    if bounds is None:
+        return pts
+    return pts.take((x >= bounds[0]) & (x < bounds[2]) & (y > bounds[1]) & (y <= bounds[3]))
+
+
 def bounds_in_file_crs(bounds: tuple, map_crs, file_crs) -> tuple:
     """A map-CRS box in a point file's CRS, padded by 1 % (the points are pre-selected with it
     before their x/y are reprojected)."""
@@ -298,9 +306,7 @@ def iter_chunks(
                     np.asarray(chunk.number_of_returns, dtype=np.uint8),
                     np.asarray(chunk.intensity, dtype=np.uint16),
                 )
-                if bounds is not None:
-                    inb = (x >= bounds[0]) & (x < bounds[2]) & (y > bounds[1]) & (y <= bounds[3])
-                    pts = pts.take(inb)
+                pts = in_bounds(pts, x, y, bounds)
                 if len(pts):
                     yield pts
     except InputError:

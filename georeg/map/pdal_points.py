@@ -278,9 +278,7 @@ def iter_chunks(
                 _field(arr, "Z", np.float64) * info.z_to_m,
                 *(_field(arr, d, t) for d, t in DIMS[3:]),
             )
-            if bounds is not None:
-                inb = (x >= bounds[0]) & (x < bounds[2]) & (y > bounds[1]) & (y <= bounds[3])
-                pts = pts.take(inb)
+            pts = lidar.in_bounds(pts, x, y, bounds)
             if len(pts):
                 yield pts
     except InputError:
