@@ -33,7 +33,7 @@ from rasterio.transform import Affine
 from georeg.io.atomic import atomic_path
 from georeg.io.errors import InputError
 from georeg.io.query import Cube, EnviCube, RasterCube
-from georeg.io.raster import tiled_profile
+from georeg.io.raster import DEFLATE_LEVEL, tiled_profile
 
 log = logging.getLogger(__name__)
 
@@ -545,7 +545,7 @@ def copy_band_interleaved_cog(
             predictor = 3 if np.dtype(ds.dtypes[0]).kind == "f" else 2
         rasterio.shutil.copy(
             stage, out, driver="GTiff", COPY_SRC_OVERVIEWS="YES", TILED="YES", BLOCKXSIZE=256,
-            BLOCKYSIZE=256, INTERLEAVE="BAND", COMPRESS="DEFLATE", PREDICTOR=predictor,
+            BLOCKYSIZE=256, INTERLEAVE="BAND", COMPRESS="DEFLATE", ZLEVEL=DEFLATE_LEVEL, PREDICTOR=predictor,
             BIGTIFF="IF_SAFER",
         )  # fmt: skip
 
@@ -578,8 +578,12 @@ def resample_cube(
         mx = np.where(valid, col, -10.0).astype(np.float32)
         my = np.where(valid, row, -10.0).astype(np.float32)
     out_tif = Path(out_tif)
+    # the stage is read once by the COG copy: uncompressed (the cube's size on disk for a moment)
+    # saves a compression and a decompression of every block
     profile = {**tiled_profile(grid.width, grid.height, cube.count, dtype, nodata),
-               "crs": CRS.from_wkt(grid.crs_wkt), "transform": grid.transform, "zlevel": 1}  # fmt: skip
+               "crs": CRS.from_wkt(grid.crs_wkt), "transform": grid.transform}  # fmt: skip
+    for key in ("compress", "zlevel", "predictor"):
+        del profile[key]
     labels = band_labels(cube)
     tmp_gtiff = out_tif.with_name(f".{out_tif.stem}.stage-{os.getpid()}.tif")
     try:

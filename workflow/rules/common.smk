@@ -183,6 +183,18 @@ def index_word_files(wildcards):
 
 
 
+#: maps with fewer tiles train their vocabulary on one core: the demo's 9 tiles take 1.9 CPU-s,
+#: and asking for every core made the job wait 34 s for a running 1-core job to finish
+VOCABULARY_PARALLEL_TILES = 16
+
+
+def index_vocabulary_threads(wildcards):
+    """Every core given with --cores for a large map, 1 for a small one (or without --cores:
+    `snakemake --report` has none, and `workflow.cores` raises there)."""
+    cores = workflow.resource_settings.cores or 1
+    return cores if len(index_tile_ids()) >= VOCABULARY_PARALLEL_TILES else 1
+
+
 def index_vocabulary_seed():
     seed = config["vocabulary"].get("seed")
     return config["seed"] if seed is None else seed

@@ -39,6 +39,7 @@ rule demo_video:
         "logs/demo/demo_video.log",
     benchmark:
         "benchmarks/demo/demo_video.tsv"
+    priority: 30
     threads: 1
     script:
         "../../scripts/demo_video.py"

@@ -48,9 +48,7 @@ rule vocabulary:
         "logs/index/vocabulary.log",
     benchmark:
         "benchmarks/index/vocabulary.tsv"
-    # every core given with --cores; 1 when none is (`snakemake --report` has no --cores, and
-    # `workflow.cores` raises there)
-    threads: lambda wildcards: workflow.resource_settings.cores or 1
+    threads: index_vocabulary_threads
     resources:
         mem_mb=4000,
     script:

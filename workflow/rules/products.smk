@@ -27,6 +27,7 @@ rule products_cube:
         "logs/products/products_cube/{name}.log",
     benchmark:
         "benchmarks/products/products_cube/{name}.tsv"
+    priority: 20
     threads: 1
     resources:
         mem_mb=1500,
@@ -53,6 +54,7 @@ rule products:
         "logs/products/products/{name}.log",
     benchmark:
         "benchmarks/products/products/{name}.tsv"
+    priority: 20
     threads: 1
     resources:
         mem_mb=2000,

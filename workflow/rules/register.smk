@@ -46,6 +46,7 @@ rule search_part:
         "logs/register/search_part/{name}_{part}.log",
     benchmark:
         "benchmarks/register/search_part/{name}_{part}.tsv"
+    priority: 20
     threads: 1
     resources:
         mem_mb=3000,
@@ -73,6 +74,7 @@ rule fuse_parts:
         "logs/register/fuse_parts/{name}.log",
     benchmark:
         "benchmarks/register/fuse_parts/{name}.tsv"
+    priority: 20
     threads: 1
     resources:
         mem_mb=3000,
@@ -101,6 +103,7 @@ rule refine_registration:
         "logs/register/refine_registration/{name}.log",
     benchmark:
         "benchmarks/register/refine_registration/{name}.tsv"
+    priority: 20
     threads: 1
     resources:
         mem_mb=3000,

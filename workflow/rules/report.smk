@@ -26,6 +26,7 @@ rule evaluate_query:
         "logs/report/evaluate_query/{name}.log",
     benchmark:
         "benchmarks/report/evaluate_query/{name}.tsv"
+    priority: 20
     threads: 1
     resources:
         mem_mb=1500,
@@ -63,6 +64,7 @@ rule report_figures:
         "logs/report/report_figures/{name}.log",
     benchmark:
         "benchmarks/report/report_figures/{name}.tsv"
+    priority: 20
     threads: 1
     resources:
         mem_mb=2000,
