@@ -1,5 +1,7 @@
 # georeg: register airborne imagery to a geo-referenced map without GPS.
 # Table of contents only; each stage lives in workflow/rules/<stage>.smk.
+# Rule priorities order ready jobs on few cores: the demo video first (30, the longest job), the
+# query chain (20), the map tiles and index (10), frames last (0); measured in docs/BENCHMARKS.md.
 import os
 
 from snakemake.utils import min_version

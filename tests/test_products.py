@@ -88,7 +88,7 @@ def run(tmp_path_factory):
                        out / "cube.json", {}, None, "demo")  # fmt: skip
     mosaics = {k: scene[k] for k in ("dsm", "dtm", "ndsm")}
     prod_m = make_products(inp["registration"], inp["geolocation"], scene["demo_hdr"],
-                           out / "cube.json", mosaics, [inp["tile"]], out / "products.json", {},
+                           None, mosaics, [inp["tile"]], out / "products.json", {},
                            None, "demo", scene["demo_labels"])  # fmt: skip
     return {"scene": scene, "inp": inp, "out": out, "cube_m": cube_m, "m": prod_m, "crs": crs_wkt}
 
@@ -96,10 +96,11 @@ def run(tmp_path_factory):
 def test_manifests_list_existing_files(run):
     m = run["m"]
     assert m["status"] == "registered"
-    for key in ("cube_cog", "cube_envi_header", "cube_envi_data", "elevation", "fused",
-                "segmentation", "segmentation_geo", "segmentation_legend", "class_areas",
-                "footprint_geojson", "footprint_kml", "points_spectra"):  # fmt: skip
+    for key in ("elevation", "fused", "segmentation", "segmentation_geo", "segmentation_legend",
+                "class_areas", "footprint_geojson", "footprint_kml", "points_spectra"):  # fmt: skip
         assert (run["out"] / m["files"][key]).is_file(), key
+    for key in ("cube_cog", "cube_envi_header", "cube_envi_data"):
+        assert (run["out"] / run["cube_m"]["files"][key]).is_file(), key
 
 
 def test_geo_cube_matches_query_spectra_at_map_points(run):
@@ -228,6 +229,8 @@ def test_segmentation_agrees_with_generator_labels(run):
     with rasterio.open(run["out"] / "segmentation_geo.tif") as ds:
         assert ds.crs.to_epsg() == 32611 and ds.nodata == 0
         assert set(np.unique(ds.read(1))) <= set(range(8))
+        with rasterio.open(run["out"] / "cube.tif") as cube:  # made apart, on the same grid
+            assert (ds.transform, ds.shape) == (cube.transform, cube.shape)
     lines = (run["out"] / "class_areas.csv").read_text().splitlines()
     assert lines[0] == "class,name,pixels,area_m2,fraction" and len(lines) == 8
     total = sum(float(v.split(",")[3]) for v in lines[1:])
@@ -288,7 +291,7 @@ def test_not_found_writes_only_a_manifest(tmp_path):
     reg.write_text(json.dumps({"status": "not_found", "reason": "no part accepted"}))
     out = tmp_path / "products" / "q"
     m1 = make_cube(reg, tmp_path / "missing.tif", tmp_path / "missing.hdr", out / "cube.json")
-    m2 = make_products(reg, tmp_path / "missing.tif", tmp_path / "missing.hdr", out / "cube.json",
+    m2 = make_products(reg, tmp_path / "missing.tif", tmp_path / "missing.hdr", None,
                        {}, [], out / "products.json")  # fmt: skip
     assert m1["status"] == m2["status"] == "not_found" and m2["files"] == {}
     assert sorted(p.name for p in out.iterdir()) == ["cube.json", "products.json"]

@@ -230,7 +230,7 @@ def _segmentation(
     f: dict[str, Path],
     gcps: list,
     crs: str,
-    cube_m: dict[str, Any],
+    grid: ProductGrid,
     inv: InverseGeolocation,
     labels: str | os.PathLike | None,
 ) -> dict[str, Any]:
@@ -242,12 +242,6 @@ def _segmentation(
     classes = seg.classify(ind, ndsm, sc)
     del ind
     seg.write_classes_query(f["segmentation"], classes, gcps, crs)
-    grid = ProductGrid(
-        rasterio.Affine(*cube_m["grid"]["transform"]),
-        int(cube_m["grid"]["width"]),
-        int(cube_m["grid"]["height"]),
-        crs,
-    )
     col, row = inverse_maps(inv, grid)
     idx = nearest_index(col, row, cube.width)
     del col, row
@@ -285,7 +279,7 @@ def make_products(
     registration: str | os.PathLike,
     geolocation: str | os.PathLike,
     image: str | os.PathLike,
-    cube_manifest: str | os.PathLike,
+    map_raster: str | os.PathLike | None,
     mosaics: dict[str, str | os.PathLike],
     point_tiles: list[str | os.PathLike],
     out_manifest: str | os.PathLike,
@@ -297,6 +291,9 @@ def make_products(
 ) -> dict[str, Any]:
     """Elevation, fused product, segmentation, footprint and point cloud; manifest products.json.
 
+    ``map_raster``: the map mosaic whose lattice the product grid follows with ``grid: map``; the
+    grid is the cube's (``product_grid`` of the same geolocation and keys), so this runs beside
+    ``make_cube`` rather than after it.
     ``labels``: optional truth class raster in query geometry (demo class codes, see
     ``segmentation.DEMO_TO_SEG``) to score the segmentation; the scores go into the manifest.
     ``map_heights``: False for an orthophoto-only map. Without heights under the footprint the
@@ -309,7 +306,6 @@ def make_products(
     if reg.get("status") != "registered":
         return _not_found(reg, name, out_manifest, "products")
     out_dir = Path(out_manifest).parent
-    cube_m = json.loads(Path(cube_manifest).read_text())
     timings: dict[str, float] = {}
     t = time.perf_counter()
     crs = reg["crs"]
@@ -373,7 +369,8 @@ def make_products(
         except InputError as exc:
             skipped["segmentation"] = str(exc)
     if "segmentation" not in skipped:
-        m["segmentation"] = _segmentation(cube, c, x, y, f, gcps, crs, cube_m, inv, labels)
+        grid = product_grid(x, y, crs, c["grid"], c["gsd_m"], map_raster)
+        m["segmentation"] = _segmentation(cube, c, x, y, f, gcps, crs, grid, inv, labels)
     if "segmentation" in skipped:
         for k in SEGMENTATION_FILES:
             f.pop(k)
@@ -403,7 +400,6 @@ def make_products(
         timings["points"] = time.perf_counter() - t
     m["skipped"] = skipped
     m["files"] = {k: _rel(v, out_dir) for k, v in f.items()}
-    m["files"].update({k: v for k, v in cube_m.get("files", {}).items()})
     m["timings_s"] = {k: round(v, 2) for k, v in timings.items()}
     write_json(out_manifest, m)
     return m

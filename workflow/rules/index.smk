@@ -28,6 +28,7 @@ rule tile_features:
         "logs/index/tile_features/{tile}.log",
     benchmark:
         "benchmarks/index/tile_features/{tile}.tsv"
+    priority: 10
     threads: 1
     resources:
         mem_mb=2000,
@@ -48,6 +49,7 @@ rule vocabulary:
         "logs/index/vocabulary.log",
     benchmark:
         "benchmarks/index/vocabulary.tsv"
+    priority: 10
     threads: index_vocabulary_threads
     resources:
         mem_mb=4000,
@@ -66,6 +68,7 @@ rule word_quantizer:
         "logs/index/word_quantizer.log",
     benchmark:
         "benchmarks/index/word_quantizer.tsv"
+    priority: 10
     threads: 1
     resources:
         mem_mb=2000,
@@ -86,6 +89,7 @@ rule tile_words:
         "logs/index/tile_words/{tile}.log",
     benchmark:
         "benchmarks/index/tile_words/{tile}.tsv"
+    priority: 10
     threads: 1
     resources:
         mem_mb=1000,
@@ -108,6 +112,7 @@ rule build_index:
         "logs/index/build_index.log",
     benchmark:
         "benchmarks/index/build_index.tsv"
+    priority: 10
     threads: 1
     resources:
         mem_mb=4000,

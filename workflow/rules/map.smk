@@ -41,6 +41,7 @@ rule map_tile_ortho:
         "logs/map/map_tile_ortho/{tile}.log",
     benchmark:
         "benchmarks/map/map_tile_ortho/{tile}.tsv"
+    priority: 10
     threads: 1
     resources:
         mem_mb=1000,
@@ -68,6 +69,7 @@ rule map_tile_elevation:
         "logs/map/map_tile_elevation/{tile}.log",
     benchmark:
         "benchmarks/map/map_tile_elevation/{tile}.tsv"
+    priority: 10
     threads: 1
     resources:
         mem_mb=3000,

@@ -10,7 +10,7 @@ PROD_MOSAICS = {k: f"results/map/mosaic/{k}.vrt" for k in ("dsm", "dtm", "ndsm")
 PROD_ORTHO = "results/map/mosaic/ortho.vrt"
 PROD_GRID = "results/map/grid.json"
 PROD_CUBE_KEYS = ("grid", "gsd_m", "resampling", "chunk_bands", "inverse_step_px", "envi_copy")
-PROD_MAKE_KEYS = ("chunk_bands", "inverse_step_px", "fused", "reflectance_scale", "points", "segmentation")
+PROD_MAKE_KEYS = ("grid", "gsd_m", "chunk_bands", "inverse_step_px", "fused", "reflectance_scale", "points", "segmentation")
 
 
 rule products_cube:
@@ -40,7 +40,7 @@ rule products:
         registration=PROD_REG,
         geolocation=PROD_GEOLOC,
         image=prod_image_files,
-        cube="results/products/{name}/cube.json",
+        ortho=PROD_ORTHO,
         grid=PROD_GRID,
         points=prod_point_tiles,
         labels=prod_labels,
@@ -62,4 +62,4 @@ rule products:
         "../../scripts/products_make.py"
 
 
-TARGETS.append(expand("results/products/{name}/products.json", name=QUERIES))
+TARGETS.append(expand("results/products/{name}/{manifest}.json", name=QUERIES, manifest=("cube", "products")))
