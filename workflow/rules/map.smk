@@ -89,6 +89,7 @@ rule map_mosaic:
         "logs/map/map_mosaic/{layer}.log",
     benchmark:
         "benchmarks/map/map_mosaic/{layer}.tsv"
+    priority: 20  # cheap, and the products need the mosaics
     threads: 1
     script:
         "../../scripts/map_mosaic.py"
