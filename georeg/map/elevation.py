@@ -414,8 +414,9 @@ def sample_rgb(ortho_path: str | os.PathLike, pts: lidar.Points) -> np.ndarray:
     with open_raster(ortho_path) as ds:
         img = read(ds, path=ortho_path)
         mask = read_masks(ds, path=ortho_path) > 0
-        r, c = rasterio.transform.rowcol(ds.transform, pts.x, pts.y, op=math.floor)
-        r, c = np.asarray(r), np.asarray(c)
+        # the inverse affine on the arrays (rasterio's rowcol loops in Python: 0.57 s a demo tile)
+        col, row = ~ds.transform * (np.asarray(pts.x, np.float64), np.asarray(pts.y, np.float64))
+        r, c = np.floor(row).astype(np.int64), np.floor(col).astype(np.int64)
         ok = (r >= 0) & (r < ds.height) & (c >= 0) & (c < ds.width)
         ok[ok] &= mask[r[ok], c[ok]]
         bands = [0, 1, 2] if img.shape[0] >= 3 else [0, 0, 0]
