@@ -11,29 +11,19 @@ from typing import Any
 import cv2
 import numpy as np
 
+from georeg.frames.render import PinholeCamera
 from georeg.io.errors import InputError
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
 
 
-@dataclass
-class View:
-    """One registered image: ``name`` (file name), full-size intrinsics, world -> camera pose."""
+@dataclass(frozen=True)
+class View(PinholeCamera):
+    """One registered image as a tool sees it: the frames' pinhole camera (full-size intrinsics,
+    world -> camera pose) with its file ``name`` and lens distortion ``dist``."""
 
     name: str
-    fx: float
-    fy: float
-    cx: float
-    cy: float
     dist: np.ndarray  # OpenCV (k1, k2, p1, p2[, k3[, k4, k5, k6]])
-    width: int
-    height: int
-    R: np.ndarray  # (3, 3) world -> camera
-    C: np.ndarray  # (3,) camera centre, world
-
-    @property
-    def K(self) -> np.ndarray:
-        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], float)
 
     def project(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N, 3) world -> (N, 2) distorted pixel (col, row) of the full-size image and (N,) depth."""
@@ -41,9 +31,7 @@ class View:
         depth = (X - self.C) @ self.R[2]
         if not len(X):
             return np.zeros((0, 2)), depth
-        rvec = cv2.Rodrigues(self.R)[0]
-        tvec = -self.R @ self.C
-        uv, _ = cv2.projectPoints(X, rvec, tvec, self.K, self.dist)
+        uv, _ = cv2.projectPoints(X, self.rvec, self.tvec, self.K, self.dist)
         return uv.reshape(-1, 2), depth
 
     def sees(self, X: np.ndarray, margin_px: float = 2.0) -> tuple[np.ndarray, np.ndarray]:
@@ -52,9 +40,7 @@ class View:
         into the frame)."""
         X = np.asarray(X, float).reshape(-1, 3)
         uv, depth = self.project(X)
-        Xc = (X - self.C) @ self.R.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            un = np.c_[self.fx * Xc[:, 0] / Xc[:, 2] + self.cx, self.fy * Xc[:, 1] / Xc[:, 2] + self.cy]
+        un, _ = PinholeCamera.project(self, X)
         inside = lambda p: ((p[:, 0] >= margin_px) & (p[:, 0] <= self.width - 1 - margin_px)  # noqa: E731
                             & (p[:, 1] >= margin_px) & (p[:, 1] <= self.height - 1 - margin_px))  # fmt: skip
         # the undistorted point may lie a little outside (barrel distortion pulls it in)
@@ -97,9 +83,9 @@ def views_from_poses(poses: list[dict], source: str | Path = "poses.json") -> li
                              "re-run the frame set with this version")  # fmt: skip
         k = full_size_intrinsics(p["intrinsics"], p.get("pyramid"))
         d = np.asarray(k["dist"] or [0.0] * 5, float)
-        out.append(View(export_name(p["image"]), k["fx"], k["fy"], k["cx"], k["cy"], d, k["width"],
-                        k["height"], np.asarray(p["R_world_to_cam"], float),
-                        np.asarray(p["camera_center_xyz"], float)))  # fmt: skip
+        out.append(View(k["fx"], k["fy"], k["cx"], k["cy"], int(k["width"]), int(k["height"]),
+                        np.asarray(p["R_world_to_cam"], float),
+                        np.asarray(p["camera_center_xyz"], float), export_name(p["image"]), d))  # fmt: skip
     names = [v.name for v in out]
     if len(set(names)) != len(names):
         raise InputError(source, "two registered frames have the same file name",
