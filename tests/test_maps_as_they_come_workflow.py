@@ -145,7 +145,8 @@ def test_two_band_swir_geotiff_is_registered_with_cube_and_footprint(runs):
     assert ev["outcome"] == "success" and ev["error"]["px"]["median"] < 1.5, ev["error"]
     prod = json.loads((run / "results/products/swir2/products.json").read_text())
     assert (run / "results/products/swir2" / prod["files"]["footprint_geojson"]).exists()
-    with rasterio.open(run / "results/products/swir2" / prod["files"]["cube_cog"]) as ds:
+    cube = json.loads((run / "results/products/swir2/cube.json").read_text())
+    with rasterio.open(run / "results/products/swir2" / cube["files"]["cube_cog"]) as ds:
         assert ds.count == 2 and ds.crs is not None
     assert "no band near" in prod["skipped"]["segmentation"]
     html = (run / "results/report/index.html").read_text()
