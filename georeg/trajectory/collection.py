@@ -4,7 +4,8 @@ For a frame set with ``collection: true``:
 
 1. photos in file-name order (the result does not depend on the order they are listed in);
    one camera per (image size, EXIF focal) group: the set's ``camera`` held fixed, else the
-   EXIF focal length (``georeg.frames.exif``) as a prior refined by the SfM, else self-calibrated;
+   EXIF focal length (``georeg.frames.exif``) held fixed (as a prior refined by the SfM it bent
+   the brighton model: docs/experiments/2026-11-26-collection.md), else self-calibrated;
 2. SfM of all photos with exhaustive pair matching (``georeg.trajectory.sfm``, the video path's
    reconstruction; cost grows with the square of the number of photos);
 3. photos localised alone by the single-frame method (``localize_frame``, feature maps first when
@@ -49,9 +50,6 @@ DEFAULTS: dict[str, Any] = {
     "structure": {},  # georeg.trajectory.structure_projection DEFAULTS overrides
     "icp": {"enabled": True},  # georeg.trajectory.icp DEFAULTS overrides
     "corridor_margin_m": 80.0,  # map read around the photos' footprints (ICP)
-    # after the Sim(3): bundle adjustment with the anchors' camera centres as priors (sigma, m)
-    "prior_ba": {"enabled": True, "sigma_m": 1.0, "min_anchors": 3, "control_points": False},
-    "exif_focal": "prior",  # prior: refined by the SfM | fixed: held
     "seed": 0,
 }
 
@@ -68,10 +66,11 @@ def collection_photos(paths: list[str]) -> list[Path]:
 
 
 def camera_groups(
-    photos: list[Path], camera: dict | None, exif_fixed: bool = False
+    photos: list[Path], camera: dict | None
 ) -> tuple[list[tuple[list[str], dict | None]], dict]:
     """SfM camera groups (names, camera) and each photo's single-frame camera. The set's
-    ``camera``: one fixed camera; else per (size, EXIF focal): a focal prior, or self-calibrated."""
+    ``camera``: one fixed camera; else per (size, EXIF focal): that focal fixed, or (no EXIF
+    focal) self-calibrated."""
     from PIL import Image
 
     from georeg.frames.exif import exif_camera
@@ -87,7 +86,7 @@ def camera_groups(
             ex = exif_camera(p, w, h)
             single[p.name] = ex
             key = (w, h, None if ex is None else round(float(ex["fx"]), 1))
-            cam = None if ex is None else {**ex, "prior": not exif_fixed}
+            cam = None if ex is None else dict(ex)
         groups.setdefault(key, ([], cam))[0].append(p.name)
     return list(groups.values()), single
 
@@ -168,9 +167,8 @@ def _single(
     return recs
 
 
-def _sim3(model, single: dict[str, dict], maps: MapSources, frame_loc: dict, c: dict, db: Path):
-    """(model, Sim(3) model -> map after ICP, info) from the registered photos in the model, or
-    (model, None, info). With ``prior_ba`` the model returned is the bundle-adjusted one."""
+def _sim3(model, single: dict[str, dict], maps: MapSources, frame_loc: dict, c: dict):
+    """(Sim(3) SfM -> map after ICP, info) from the registered photos in the model, or (None, info)."""
     from georeg.trajectory.icp import icp_refine
     from georeg.trajectory.structure_projection import estimate_sfm_to_map
 
@@ -179,7 +177,7 @@ def _sim3(model, single: dict[str, dict], maps: MapSources, frame_loc: dict, c: 
     info: dict[str, Any] = {"anchors": [a[0] for a in anchors]}
     if not anchors:
         info["reason"] = "no photo of the SfM model registered alone"
-        return model, None, info
+        return None, info
     zg = maps.ground_z(anchors[0][2])
 
     def cams(R_C) -> list[PinholeCamera]:
@@ -192,18 +190,14 @@ def _sim3(model, single: dict[str, dict], maps: MapSources, frame_loc: dict, c: 
     source = frame_loc.get("render_source", "heightfield")
     bounds = footprint_window(cams(anchors), zg, float(frame_loc.get("cloud_margin_m", 120.0)),
                               float(frame_loc.get("max_cloud_extent_m", 1600.0)))  # fmt: skip
-    target = maps.cloud(bounds, source)
     try:
-        sim, sinfo = estimate_sfm_to_map(model, anchors, target, c["structure"], int(c["seed"]))
+        sim, sinfo = estimate_sfm_to_map(model, anchors, maps.cloud(bounds, source), c["structure"],
+                                         int(c["seed"]))  # fmt: skip
     except ValueError as exc:
         log.warning("Sim(3) SfM -> map failed: %s", exc)
         info["reason"] = f"structure projection: {exc}"
-        return model, None, info
+        return None, info
     info["sim3"] = {**sinfo, "scale": float(sim.s)}
-    pb = {**DEFAULTS["prior_ba"], **(c.get("prior_ba") or {})}
-    if pb["enabled"] and len(anchors) >= int(pb["min_anchors"]):
-        model, sim = _prior_ba(model, sim, anchors, target, float(pb["sigma_m"]), db, c)
-        info["prior_ba"] = model.info.get("prior_ba")
     final = sim
     if (c.get("icp") or {}).get("enabled", True):
         posed = [
@@ -214,39 +208,7 @@ def _sim3(model, single: dict[str, dict], maps: MapSources, frame_loc: dict, c: 
         T, info["icp"] = icp_refine(sim.apply(model.xyz), maps.cloud(corridor, source), c["icp"],
                                     guard_xyz=sim.apply(model.C))  # fmt: skip
         final = Sim3.from_matrix(np.asarray(T) @ sim.matrix())
-    return model, final, info
-
-
-def _prior_ba(model, sim: Sim3, anchors: list[tuple], target, sigma_m: float, db: Path, c: dict):
-    """The model bundle-adjusted in a local map frame (origin: the anchors' mean centre) with the
-    anchors' single-frame centres as priors and the Sim(3)'s structure-projection inliers (median
-    map point per SfM point) as control points; returns (model, Sim(3) local -> map)."""
-    from georeg.trajectory.sfm import DEFAULTS as SFM_DEFAULTS
-    from georeg.trajectory.sfm import prior_bundle_adjust
-    from georeg.trajectory.structure_projection import DEFAULTS as SP_DEFAULTS
-    from georeg.trajectory.structure_projection import project_structure
-
-    sp = {**SP_DEFAULTS, **(c.get("structure") or {})}
-    o = np.mean([a[2] for a in anchors], axis=0)
-    idx, dst = [], []
-    for n, R, C in anchors:
-        cor = project_structure(model, n, R, C, target, None, float(sp["max_depth_jump"]))
-        ok = cor.valid.copy()
-        ok[ok] = np.linalg.norm(sim.apply(cor.src[ok]) - cor.dst[ok], axis=1) < float(
-            sp["ransac_threshold_m"]
-        )
-        idx.append(cor.point_idx[ok])
-        dst.append(cor.dst[ok])
-    idx_all, dst_all = np.concatenate(idx), np.concatenate(dst)
-    control = {int(i): np.median(dst_all[idx_all == i], axis=0) - o for i in np.unique(idx_all)}
-    to_local = Sim3(sim.s, sim.R, sim.t - o).matrix()
-    priors = {n: np.asarray(C, float) - o for n, _, C in anchors}
-    mtl = int((c["sfm"] or {}).get("min_track_len", SFM_DEFAULTS["min_track_len"]))
-    pb = {**DEFAULTS["prior_ba"], **(c.get("prior_ba") or {})}
-    model = prior_bundle_adjust(
-        model, to_local, priors, sigma_m, db, mtl, control if pb["control_points"] else None
-    )
-    return model, Sim3(1.0, np.eye(3), o)
+    return final, info
 
 
 def _sfm_record(model, i: int, sim: Sim3, xyz_map: np.ndarray, zg: float, cam_src: str) -> dict:
@@ -277,7 +239,7 @@ def _georeference(photos: list[Path], camera: dict | None, maps: MapSources, fra
     c["sfm"] = {**DEFAULTS["sfm"], **(c.get("sfm") or {})}
     t_all = time.perf_counter()
     timings: dict[str, float] = {}
-    groups, cams = camera_groups(photos, camera, c["exif_focal"] == "fixed")
+    groups, cams = camera_groups(photos, camera)
     t0 = time.perf_counter()
     model, why = _sfm(photos, groups, work, c)
     timings["sfm_s"] = time.perf_counter() - t0
@@ -287,14 +249,10 @@ def _georeference(photos: list[Path], camera: dict | None, maps: MapSources, fra
     single = _single(photos, cams, model, maps, frame_loc, c)
     timings["single_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    model, sim, sinfo = (
-        _sim3(model, single, maps, frame_loc, c, work / "sfm" / "database.db")
-        if model
-        else (None, None, {"reason": why})
-    )
+    sim, sinfo = _sim3(model, single, maps, frame_loc, c) if model else (None, {"reason": why})
     info.update(sinfo)
     timings["sim3_icp_s"] = time.perf_counter() - t0
-    cam_src = "given" if camera else "sfm (EXIF focal prior, refined)"
+    cam_src = "given" if camera else "EXIF focal, or sfm self-calibration without one"
     xyz_map, zg = np.zeros((0, 3)), 0.0
     if sim is not None:  # the ground under the footprints: the SfM points' median height
         xyz_map = sim.apply(model.xyz)

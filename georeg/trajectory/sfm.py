@@ -61,8 +61,6 @@ class SfMModel:
     obs_uv: list[np.ndarray] = field(default_factory=list)  # per keyframe: (k, 2) (col, row)
     info: dict[str, Any] = field(default_factory=dict)
     cams: dict[str, tuple] = field(default_factory=dict)  # per image (K, dist, width, height) if mixed
-    reconstruction: Any = field(default=None, repr=False)  # the pycolmap.Reconstruction (not saved)
-    point_ids: Any = field(default=None, repr=False)  # (N,) its point3D ids of ``xyz`` (not saved)
 
     def camera(self, name: str) -> tuple[np.ndarray, np.ndarray, int, int]:
         """(K, OpenCV distortion, width, height) of image ``name`` (the shared camera unless
@@ -97,8 +95,8 @@ def _seed_options(opts: Any, seed: int, threads: int) -> None:
 
 
 def _reader(camera: dict | None) -> Any:
-    """Image reader options: ``camera`` {fx, fy, cx, cy[, dist]} (our pixel centres) as the
-    camera's parameters, a SIMPLE_RADIAL focal prior with ``prior: true``; None: self-calibrated."""
+    """Image reader options: ``camera`` {fx, fy, cx, cy[, dist]} (our pixel centres) held fixed;
+    None: one SIMPLE_RADIAL camera, self-calibrated."""
     import pycolmap
 
     reader = pycolmap.ImageReaderOptions()
@@ -108,10 +106,7 @@ def _reader(camera: dict | None) -> Any:
     fx, fy = float(camera["fx"]), float(camera["fy"])
     cx, cy = float(camera["cx"]) + 0.5, float(camera["cy"]) + 0.5  # COLMAP pixel centres
     dist = [float(v) for v in (camera.get("dist") or [])]
-    if camera.get("prior"):
-        reader.camera_model = "SIMPLE_RADIAL"
-        reader.camera_params = f"{fx!r},{cx!r},{cy!r},0.0"
-    elif any(dist):  # OpenCV k1, k2, p1, p2, k3[, k4, k5, k6]
+    if any(dist):  # OpenCV k1, k2, p1, p2, k3[, k4, k5, k6]
         reader.camera_model = "FULL_OPENCV"
         reader.camera_params = ",".join(repr(v) for v in [fx, fy, cx, cy, *(dist + [0.0] * 8)[:8]])
     else:
@@ -269,7 +264,7 @@ def _to_model(rec: Any, db_path: Path, names_order: list[str], min_track_len: in
     return SfMModel(
         names=names, R=np.array(Rs), C=np.array(Cs), K=K, dist=dist, width=int(cam.width),
         height=int(cam.height), xyz=xyz, track_len=track.astype(int), descriptors=descriptors,
-        rgb=rgb, obs_point=obs_point, obs_uv=obs_uv, cams=cams, point_ids=keep,
+        rgb=rgb, obs_point=obs_point, obs_uv=obs_uv, cams=cams,
     )  # fmt: skip
 
 
@@ -281,8 +276,8 @@ def run_sfm(
 
     ``camera``: {fx, fy, cx, cy} in pixels of the (undistorted) keyframes, held fixed; None
     self-calibrates one shared SIMPLE_RADIAL camera. ``groups`` (photo collections, mixed
-    cameras): (image names, camera) pairs, one COLMAP camera each (``_reader``: fixed, a focal
-    prior, or self-calibrated); then ``camera`` is ignored. Returns the largest model.
+    cameras): (image names, camera) pairs, one COLMAP camera each (``_reader``: fixed, or None
+    self-calibrated); then ``camera`` is ignored. Returns the largest model.
     """
     import pycolmap
 
@@ -331,7 +326,7 @@ def _reconstruct(
         d.close()
     log.info("SfM: %d keyframes, %d features (%.1f s), %d verified pairs, %d inlier matches "
              "(%.1f s)", len(names), n_kp, t1 - t0, n_pairs, n_inl, t2 - t1)  # fmt: skip
-    fixed = all(cam and not cam.get("prior") for _, cam in groups)
+    fixed = all(bool(cam) for _, cam in groups)
     recs = _map(db, image_dir, work / "sparse", fixed, len(names), conf)
     t3 = time.perf_counter()
     if not recs:
@@ -345,7 +340,6 @@ def _reconstruct(
         raise ValueError(f"SfM of {image_dir}: only {rec.num_reg_images()} of {len(names)} "
                          "keyframes registered (need >= 3)")  # fmt: skip
     model = _to_model(rec, db, names, int(conf["min_track_len"]))
-    model.reconstruction = rec
     model.info = {
         "n_keyframes": len(names), "n_registered": len(model.names), "n_features": n_kp,
         "n_verified_pairs": n_pairs, "n_inlier_matches": n_inl, "n_models": len(recs),
@@ -393,59 +387,3 @@ def read_model(path: str | Path) -> SfMModel:
         info=json.loads(str(z["info"])),
     )  # fmt: skip
 
-
-def prior_bundle_adjust(model: SfMModel, to_local: np.ndarray, priors: dict[str, np.ndarray],
-                        sigma_m: float, db_path: str | Path, min_track_len: int,
-                        control: dict[int, np.ndarray] | None = None) -> SfMModel:  # fmt: skip
-    """Bundle adjustment of ``model``'s reconstruction moved by the 3 x 4 similarity ``to_local``
-    into a local metric frame, with camera-centre priors (``priors``: image name -> centre in that
-    frame, standard deviation ``sigma_m``; pycolmap's pose-prior bundle adjuster, as GPS priors)
-    and ``control`` points (index into ``model.xyz`` -> position in that frame, held fixed, as
-    ground control): the model bends to the photos registered alone and its focal length and
-    distortion are refined against both (camera priors alone trade focal length against depth).
-    Returns the model in that frame."""
-    import pycolmap
-
-    rec = model.reconstruction
-    if rec is None or model.point_ids is None:
-        raise ValueError("prior_bundle_adjust: the model carries no pycolmap reconstruction")
-    rec.transform(pycolmap.Sim3d(np.asarray(to_local, float)[:3, :4]))
-    config = pycolmap.BundleAdjustmentConfig()
-    out = []
-    for im in rec.images.values():
-        if not im.has_pose:
-            continue
-        config.add_image(im.image_id)
-        if im.name in priors:
-            out.append(pycolmap.PosePrior(
-                position=np.asarray(priors[im.name], float).reshape(3, 1),
-                position_covariance=np.eye(3) * float(sigma_m) ** 2,
-                coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN,
-                corr_data_id=im.data_id))  # fmt: skip
-    fixed = {int(model.point_ids[i]): np.asarray(x, float) for i, x in (control or {}).items()}
-    for pid in rec.point3D_ids():
-        if pid in fixed:
-            rec.point3D(pid).xyz = fixed[pid]
-            config.add_constant_point(pid)
-        else:
-            config.add_variable_point(pid)
-    opts = pycolmap.BundleAdjustmentOptions()
-    opts.print_summary = False
-    f0 = [float(c.params[0]) for c in rec.cameras.values()]
-    if out and not fixed:
-        popts = pycolmap.PosePriorBundleAdjustmentOptions()
-        popts.prior_position_fallback_stddev = float(sigma_m)
-        summary = pycolmap.create_pose_prior_bundle_adjuster(opts, popts, config, out, rec).solve()
-    else:  # control points fix the frame; intrinsics held
-        for cid in rec.cameras:
-            config.set_constant_cam_intrinsics(cid)
-        summary = pycolmap.create_default_bundle_adjuster(opts, config, rec).solve()
-    new = _to_model(rec, db_path, list(model.names), min_track_len)
-    new.reconstruction = rec
-    f1 = [float(c.params[0]) for c in rec.cameras.values()]
-    new.info = {**model.info, "prior_ba": {"priors": len(out), "control_points": len(fixed),
-                                           "sigma_m": float(sigma_m), "focal_px": [f0, f1],
-                                           "termination": str(getattr(summary, "termination_type", ""))}}  # fmt: skip
-    log.info("prior BA: %d camera priors (sigma %.2f m), %d control points, focal %s -> %s px",
-             len(out), sigma_m, len(fixed), f0, f1)  # fmt: skip
-    return new
