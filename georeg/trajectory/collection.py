@@ -277,7 +277,11 @@ def _georeference(photos: list[Path], camera: dict | None, maps: MapSources, fra
                 "posed_by": "sfm+sim3",
             }
             if n in single:
-                rec["single_frame"] = single_frame_record(single[n], rec)
+                sf = single[n]
+                rec["single_frame"] = {
+                    **single_frame_record(sf, rec),
+                    "camera_center_xyz": sf.get("camera_center_xyz"),
+                }
         else:
             rec = {
                 **single[n],
