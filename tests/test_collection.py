@@ -1,9 +1,9 @@
 """Unordered photo collections (issue 33 item 3; georeg.trajectory.collection).
 
 Synthetic: every 8th frame of the small demo video written as PNG photos under shuffled names
-(name order is not flight order), plus one photo of another place (the frame mirrored): the
+(name order is not flight order), plus one photo of no place (blurred noise): the
 collection poses the flight's photos within the sequence path's tolerance (tests/test_trajectory:
-mean < 2 m, p90 < 3 m, rotation < 1 deg), the mirrored one is not_found, and listing the photos
+mean < 2 m, p90 < 3 m, rotation < 1 deg), the noise one is not_found, and listing the photos
 in another order gives the same poses. Real (../shared/data/brighton, skipped without it): five
 photos of the second half of the flight at half size, as a collection, pose at least as many
 photos within 3 m of GPS as each photo alone; the collection's exports load in pycolmap and
@@ -50,7 +50,8 @@ def photo_set(small_demo_map):
         nm = f"photo_{names[k]:02d}.png"
         cv2.imwrite(str(pdir / nm), frames[i])
         by_name[nm] = truth[i]
-    cv2.imwrite(str(pdir / "elsewhere.png"), np.ascontiguousarray(frames[take[3]][:, ::-1]))
+    noise = np.random.default_rng(3).integers(0, 256, (VIDEO["height"], VIDEO["width"], 3), dtype=np.uint8)
+    cv2.imwrite(str(pdir / "elsewhere.png"), cv2.GaussianBlur(noise, (0, 0), 2.0))  # no place at all
     it = truth[0]["intrinsics"]
     cam = {k: it[k] for k in ("fx", "fy", "cx", "cy", "dist")}
     maps = MapSources(tmp / "index", tdir / "ortho.tif", outs["dsm"], [])
