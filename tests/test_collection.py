@@ -91,6 +91,8 @@ def test_collection_poses_the_flight_and_not_the_other_place(collection, photo_s
     assert all(
         p["intrinsics"]["width"] == VIDEO["width"] and p["reprojection_px"] < 2.0 for p in sfm
     )
+    # each SfM pose is scored against the map as the single-frame path scores its poses (recorded)
+    assert np.median([p["verification"]["score"] for p in sfm]) >= 15, [p["verification"] for p in sfm]
     fc = json.loads((out / "cameras.geojson").read_text())
     assert fc["features"] and (out / "cameras.kml").exists() and (out / "sfm_points.laz").exists()
     assert not (out / ".work").exists()

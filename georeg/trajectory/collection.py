@@ -231,6 +231,40 @@ def _sfm_record(model, i: int, sim: Sim3, xyz_map: np.ndarray, zg: float, cam_sr
             "footprint_xy": footprint_xy(cam, zg).tolist(), "intrinsics": _intrinsics(K, dist, w, h, cam_src)}  # fmt: skip
 
 
+def verify_pose(
+    path: Path,
+    K: np.ndarray,
+    dist: np.ndarray,
+    R: np.ndarray,
+    C: np.ndarray,
+    maps: MapSources,
+    frame_loc: dict,
+) -> dict:
+    """The single-frame path's verification score of the pose (R, C) of photo ``path`` (K and
+    distortion of the full-size photo): guided matches against the orthophoto / DSM window under
+    the pose that reproject within the tolerance (``georeg.frames.direct.verify``)."""
+    import cv2
+
+    from georeg.frames.direct import DEFAULTS as DIRECT_DEFAULTS
+    from georeg.frames.direct import match_window, verification_tolerance, verify
+    from georeg.frames.localize import DEFAULTS as LOC_DEFAULTS
+    from georeg.frames.localize import working_level
+
+    rgb = check_frame(path)
+    if np.any(dist):
+        rgb = cv2.undistort(rgb, K, np.asarray(dist, float))
+    cam0 = {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2]}
+    mpx = float(frame_loc.get("max_frame_mpx", LOC_DEFAULTS["max_frame_mpx"]))
+    rgb, k, _ = working_level(rgb, cam0, mpx)
+    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    cam = PinholeCamera(k["fx"], k["fy"], k["cx"], k["cy"], gray.shape[1], gray.shape[0], R, C)
+    vconf = {**DIRECT_DEFAULTS, **(frame_loc.get("direct") or {})}
+    feat = maps.index.meta.get("features_conf") or {}
+    zg = maps.ground_z(C)
+    mt = match_window(gray, cam, maps.ortho, maps.dsm, feat, maps.gsd, zg, vconf, maps.flat_z)
+    return verify(mt, cam, verification_tolerance(cam, maps.gsd, zg, float(vconf["verify_px"])))
+
+
 def _georeference(photos: list[Path], camera: dict | None, maps: MapSources, frame_loc: dict,
                   conf: dict, out: Path, work: Path, truth_path: str | None) -> list[dict]:  # fmt: skip
     from georeg.trajectory.outputs import write_point_map
@@ -276,6 +310,9 @@ def _georeference(photos: list[Path], camera: dict | None, maps: MapSources, fra
                 **_sfm_record(model, model.index(n), sim, xyz_map, zg, cam_src),
                 "posed_by": "sfm+sim3",
             }
+            K, dist, _, _ = model.camera(n)
+            R, C = np.asarray(rec["R_world_to_cam"]), np.asarray(rec["camera_center_xyz"])
+            rec["verification"] = verify_pose(p, K, dist, R, C, maps, frame_loc)
             if n in single:
                 sf = single[n]
                 rec["single_frame"] = {
