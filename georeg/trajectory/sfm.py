@@ -31,6 +31,7 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 DEFAULTS: dict[str, Any] = {
     "max_features": 4000,  # SIFT features per keyframe
     "max_image_size": 1600,  # keyframes larger than this are downscaled for extraction
+    "matching": "sequential",  # sequential (ordered keyframes) | exhaustive (unordered photos)
     "overlap": 10,  # sequential matching: each keyframe against the next `overlap`
     "min_num_matches": 15,  # verified matches for a pair to enter the mapper
     "min_track_len": 4,  # keep points seen in >= this many keyframes (as the paper)
@@ -59,6 +60,12 @@ class SfMModel:
     obs_point: list[np.ndarray] = field(default_factory=list)  # per keyframe: (k,) point indices
     obs_uv: list[np.ndarray] = field(default_factory=list)  # per keyframe: (k, 2) (col, row)
     info: dict[str, Any] = field(default_factory=dict)
+    cams: dict[str, tuple] = field(default_factory=dict)  # per image (K, dist, width, height) if mixed
+
+    def camera(self, name: str) -> tuple[np.ndarray, np.ndarray, int, int]:
+        """(K, OpenCV distortion, width, height) of image ``name`` (the shared camera unless
+        the model has per-image cameras)."""
+        return self.cams.get(name, (self.K, self.dist, self.width, self.height))
 
     def index(self, name: str) -> int:
         """Position of keyframe ``name`` in ``names`` (ValueError if not registered)."""
@@ -87,26 +94,41 @@ def _seed_options(opts: Any, seed: int, threads: int) -> None:
             setattr(opts, name, value)
 
 
-def _extract(db: Path, image_dir: Path, names: list[str], camera: dict | None, conf: dict) -> None:
+def _reader(camera: dict | None) -> Any:
+    """Image reader options: ``camera`` {fx, fy, cx, cy[, dist]} (our pixel centres) held fixed;
+    None: one SIMPLE_RADIAL camera, self-calibrated."""
     import pycolmap
 
     reader = pycolmap.ImageReaderOptions()
-    if camera:
-        reader.camera_model = "PINHOLE"
-        fx, fy = float(camera["fx"]), float(camera["fy"])
-        cx, cy = float(camera["cx"]) + 0.5, float(camera["cy"]) + 0.5  # COLMAP pixel centres
-        reader.camera_params = f"{fx!r},{fy!r},{cx!r},{cy!r}"
-    else:
+    if not camera:
         reader.camera_model = "SIMPLE_RADIAL"
+        return reader
+    fx, fy = float(camera["fx"]), float(camera["fy"])
+    cx, cy = float(camera["cx"]) + 0.5, float(camera["cy"]) + 0.5  # COLMAP pixel centres
+    dist = [float(v) for v in (camera.get("dist") or [])]
+    if any(dist):  # OpenCV k1, k2, p1, p2, k3[, k4, k5, k6]
+        reader.camera_model = "FULL_OPENCV"
+        reader.camera_params = ",".join(repr(v) for v in [fx, fy, cx, cy, *(dist + [0.0] * 8)[:8]])
+    else:
+        reader.camera_model = "PINHOLE"
+        reader.camera_params = f"{fx!r},{fy!r},{cx!r},{cy!r}"
+    return reader
+
+
+def _extract(db: Path, image_dir: Path, groups: list[tuple[list[str], dict | None]], conf: dict) -> None:
+    """SIFT features; one COLMAP camera per group of image names (``_reader``)."""
+    import pycolmap
+
     ext = pycolmap.FeatureExtractionOptions()
     ext.num_threads = int(conf["num_threads"])
     ext.use_gpu = False
     ext.max_image_size = int(conf["max_image_size"])
     ext.sift.max_num_features = int(conf["max_features"])
-    pycolmap.extract_features(
-        db, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-        reader_options=reader, extraction_options=ext, device=pycolmap.Device.cpu,
-    )  # fmt: skip
+    for names, camera in groups:
+        pycolmap.extract_features(
+            db, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=_reader(camera), extraction_options=ext, device=pycolmap.Device.cpu,
+        )  # fmt: skip
 
 
 def _match(db: Path, conf: dict) -> None:
@@ -115,6 +137,14 @@ def _match(db: Path, conf: dict) -> None:
     mopt = pycolmap.FeatureMatchingOptions()
     mopt.num_threads = int(conf["num_threads"])
     mopt.use_gpu = False
+    if conf["matching"] == "exhaustive":  # every pair (unordered photo collections)
+        ver = pycolmap.TwoViewGeometryOptions()
+        ver.ransac.random_seed = int(conf["seed"])
+        pycolmap.match_exhaustive(db, matching_options=mopt, verification_options=ver,
+                                  device=pycolmap.Device.cpu)  # fmt: skip
+        return
+    if conf["matching"] != "sequential":
+        raise ValueError(f"SfM: matching {conf['matching']!r} is not sequential or exhaustive")
     pair = pycolmap.SequentialPairingOptions()
     pair.overlap = int(conf["overlap"])
     pair.quadratic_overlap = False
@@ -159,9 +189,9 @@ def _camera_arrays(cam: Any) -> tuple[np.ndarray, np.ndarray]:
         cx, cy = p[1], p[2]
         k = p[3:]
         dist = np.array([k[0] if k.size > 0 else 0.0, k[1] if k.size > 1 else 0.0, 0.0, 0.0])
-    elif name in ("PINHOLE", "OPENCV"):
+    elif name in ("PINHOLE", "OPENCV", "FULL_OPENCV"):
         fx, fy, cx, cy = p[:4]
-        dist = np.r_[p[4:8], np.zeros(4 - p[4:8].size)]
+        dist = np.r_[p[4:], np.zeros(max(0, 4 - p[4:].size))]
     else:
         raise ValueError(f"SfM: unsupported COLMAP camera model {name}")
     K = np.array([[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1]], float)
@@ -197,6 +227,10 @@ def _to_model(rec: Any, db_path: Path, names_order: list[str], min_track_len: in
         Cs.append(np.asarray(imgs[n].projection_center(), float))
     cam = imgs[names[0]].camera
     K, dist = _camera_arrays(cam)
+    cams = {}
+    if len({imgs[n].camera_id for n in names}) > 1:  # mixed cameras (a photo collection)
+        cams = {n: (*_camera_arrays(imgs[n].camera), int(imgs[n].camera.width), int(imgs[n].camera.height))
+                for n in names}  # fmt: skip
     pids = np.array(sorted(rec.points3D.keys()), np.int64)
     tl = np.array([rec.points3D[p].track.length() for p in pids], int)
     keep = pids[tl >= min_track_len]
@@ -230,18 +264,20 @@ def _to_model(rec: Any, db_path: Path, names_order: list[str], min_track_len: in
     return SfMModel(
         names=names, R=np.array(Rs), C=np.array(Cs), K=K, dist=dist, width=int(cam.width),
         height=int(cam.height), xyz=xyz, track_len=track.astype(int), descriptors=descriptors,
-        rgb=rgb, obs_point=obs_point, obs_uv=obs_uv,
+        rgb=rgb, obs_point=obs_point, obs_uv=obs_uv, cams=cams,
     )  # fmt: skip
 
 
 def run_sfm(
     image_dir: str | Path, work_dir: str | Path, camera: dict | None = None,
-    conf: dict | None = None,
+    conf: dict | None = None, groups: list[tuple[list[str], dict | None]] | None = None,
 ) -> SfMModel:  # fmt: skip
     """Reconstruct the keyframes of ``image_dir`` (work files under ``work_dir``, overwritten).
 
     ``camera``: {fx, fy, cx, cy} in pixels of the (undistorted) keyframes, held fixed; None
-    self-calibrates one shared SIMPLE_RADIAL camera. Returns the largest model.
+    self-calibrates one shared SIMPLE_RADIAL camera. ``groups`` (photo collections, mixed
+    cameras): (image names, camera) pairs, one COLMAP camera each (``_reader``: fixed, or None
+    self-calibrated); then ``camera`` is ignored. Returns the largest model.
     """
     import pycolmap
 
@@ -256,20 +292,27 @@ def run_sfm(
     level = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = int(conf["colmap_log_level"])
     try:
-        return _reconstruct(image_dir, work, names, camera, conf)
+        if groups is None:
+            groups = [(names, camera)]
+        else:
+            missing = sorted(set(names) - {n for g, _ in groups for n in g})
+            if missing:
+                raise ValueError(f"SfM: images {missing[:3]} of {image_dir} are in no camera group")
+        return _reconstruct(image_dir, work, names, groups, conf)
     finally:
         pycolmap.logging.minloglevel = level
 
 
 def _reconstruct(
-    image_dir: Path, work: Path, names: list[str], camera: dict | None, conf: dict
+    image_dir: Path, work: Path, names: list[str], groups: list[tuple[list[str], dict | None]],
+    conf: dict,
 ) -> SfMModel:
     import pycolmap
 
     db = work / "database.db"
     pycolmap.set_random_seed(int(conf["seed"]))
     t0 = time.perf_counter()
-    _extract(db, image_dir, names, camera, conf)
+    _extract(db, image_dir, groups, conf)
     t1 = time.perf_counter()
     _match(db, conf)
     t2 = time.perf_counter()
@@ -283,7 +326,8 @@ def _reconstruct(
         d.close()
     log.info("SfM: %d keyframes, %d features (%.1f s), %d verified pairs, %d inlier matches "
              "(%.1f s)", len(names), n_kp, t1 - t0, n_pairs, n_inl, t2 - t1)  # fmt: skip
-    recs = _map(db, image_dir, work / "sparse", bool(camera), len(names), conf)
+    fixed = all(bool(cam) for _, cam in groups)
+    recs = _map(db, image_dir, work / "sparse", fixed, len(names), conf)
     t3 = time.perf_counter()
     if not recs:
         raise ValueError(f"SfM of {image_dir}: the mapper produced no model (too little overlap "
@@ -303,7 +347,7 @@ def _reconstruct(
         "mean_reproj_px": float(rec.compute_mean_reprojection_error()),
         "seconds": {"extract": t1 - t0, "match": t2 - t1, "map": t3 - t2},
         "camera_model": rec.cameras[rec.images[rec.reg_image_ids()[0]].camera_id].model_name,
-        "camera_fixed": bool(camera),
+        "camera_fixed": fixed, "cameras": len(groups), "matching": conf["matching"],
     }  # fmt: skip
     log.info("SfM: %d/%d keyframes registered, %d points (%d with track >= %d), mean reprojection "
              "%.2f px, focal %.1f px (%.1f s mapping)", len(model.names), len(names),
@@ -342,3 +386,4 @@ def read_model(path: str | Path) -> SfMModel:
         rgb=z["rgb"], obs_point=np.split(z["obs_point"], cuts), obs_uv=np.split(z["obs_uv"], cuts),
         info=json.loads(str(z["info"])),
     )  # fmt: skip
+

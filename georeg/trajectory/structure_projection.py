@@ -83,18 +83,19 @@ def project_structure(
 ) -> Correspondences:  # fmt: skip
     """Correspondences of keyframe ``name`` at map pose (``R_map`` world -> camera, ``C_map``).
 
-    ``K``: the anchor's intrinsics (keyframe pixels used as they are); None = the SfM camera,
-    observations undistorted with its distortion. ``target``: the map cloud, or a callable
+    ``K``: the anchor's intrinsics (keyframe pixels used as they are); None = the SfM camera of
+    that image (``SfMModel.camera``), observations undistorted with its distortion. ``target``: the map cloud, or a callable
     rendering a ``PinholeCamera``.
     """
     idx, uv = model.observations(name)
     uv = np.asarray(uv, float)
+    K_sfm, dist, width, height = model.camera(name)
     if K is None:
-        K = model.K
-        if np.any(model.dist != 0) and len(uv):
-            uv = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, model.dist, P=K).reshape(-1, 2)
+        K = K_sfm
+        if np.any(dist != 0) and len(uv):
+            uv = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, dist, P=K).reshape(-1, 2)
     K = np.asarray(K, float)
-    cam = PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], model.width, model.height,
+    cam = PinholeCamera(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height,
                         np.asarray(R_map, float), np.asarray(C_map, float))  # fmt: skip
     rnd = _render(target, cam)
     z, ok, empty = _depth_at(rnd.depth, uv, max_depth_jump)

@@ -59,7 +59,15 @@ FRAME_SETS = sorted(config.get("frames") or {})  # frame geo-localisation sets (
 # independent frames (rule localize_frames); both write results/frames/{set}/poses.json
 VIDEO_SETS = [s for s in FRAME_SETS if config["frames"][s].get("video")
               or config["frames"][s].get("trajectory")]  # fmt: skip
-IMAGE_SETS = [s for s in FRAME_SETS if s not in VIDEO_SETS]
+# sets with `collection: true` are unordered photo collections (rule collection, issue 33)
+COLLECTION_SETS = [s for s in FRAME_SETS if config["frames"][s].get("collection")]
+for _s in COLLECTION_SETS:
+    if _s in VIDEO_SETS:
+        raise ValueError(f"frames.{_s}: `collection: true` and a video / `trajectory: true` exclude "
+                         "each other (a collection is unordered photos)")  # fmt: skip
+# sets whose SfM points (sfm_points.laz + descriptors) are their feature map and export points
+SFM_SETS = VIDEO_SETS + COLLECTION_SETS
+IMAGE_SETS = [s for s in FRAME_SETS if s not in SFM_SETS]
 
 
 def query_name_pattern():
@@ -340,7 +348,7 @@ def feature_map_laz(name):
         return name
     if fs.get("write_feature_map"):
         return f"results/frames/{name}/feature_map.laz"
-    if name in VIDEO_SETS:
+    if name in SFM_SETS:
         return f"results/frames/{name}/sfm_points.laz"
     raise ValueError(f"frames: feature map {name!r} is an image set without write_feature_map: "
                      "it writes no feature map")

@@ -10,7 +10,7 @@ rule export_frames:
         poses="results/frames/{eset}/poses.json",
         ortho="results/map/mosaic/ortho.vrt",
         dsm=frame_dsm,
-        sfm=lambda wc: [f"results/frames/{wc.eset}/sfm_points.laz"] if wc.eset in VIDEO_SETS else [],
+        sfm=lambda wc: [f"results/frames/{wc.eset}/sfm_points.laz"] if wc.eset in SFM_SETS else [],
     output:
         gcp="results/frames/{eset}/export/gcp_list.txt",
         geo="results/frames/{eset}/export/geo.txt",

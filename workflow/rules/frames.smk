@@ -50,8 +50,8 @@ GROW_SETS = [s for s in FRAME_SETS if config["frames"][s].get("write_feature_map
 rule grow_feature_map:
     input:
         poses="results/frames/{gset}/poses.json",
-        images=lambda wc: [] if wc.gset in VIDEO_SETS else frame_images(config["frames"][wc.gset].get("images")),
-        own=lambda wc: [f"results/frames/{wc.gset}/sfm_points.laz"] if wc.gset in VIDEO_SETS else [],
+        images=lambda wc: [] if wc.gset in SFM_SETS else frame_images(config["frames"][wc.gset].get("images")),
+        own=lambda wc: [f"results/frames/{wc.gset}/sfm_points.laz"] if wc.gset in SFM_SETS else [],
         used=lambda wc: frame_set_feature_maps(wc.gset),
         ortho="results/map/mosaic/ortho.vrt",
         dsm=frame_dsm,
@@ -61,7 +61,7 @@ rule grow_feature_map:
     params:
         conf=(config.get("frame_loc") or {}).get("feature_map") or {},
         ground_z=config["map"].get("ground_z", 0.0),
-        video=lambda wc: wc.gset in VIDEO_SETS,
+        video=lambda wc: wc.gset in SFM_SETS,
     wildcard_constraints:
         gset="|".join(re.escape(s) for s in GROW_SETS) or "(?!)",
     log:
