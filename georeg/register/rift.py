@@ -1,0 +1,329 @@
+"""RIFT-style features for multimodal registration: phase congruency and the maximum index map.
+
+Li, Hu, Ai, "RIFT: Multi-modal image matching based on radiation-variation insensitive feature
+transform", IEEE TIP 29 (2020). A log-Gabor bank (frequency domain, one forward FFT per image, one
+inverse per filter) gives per scale / orientation amplitudes; Kovesi's phase congruency per
+orientation gives the maximum moment map (keypoints), the orientation of largest scale-summed
+amplitude gives the maximum index map (MIM); a keypoint's descriptor is the histogram of MIM
+values in each cell of a square patch around it. Rotation: the query is rotated over a fixed set
+of angles and every rotation is one more test in the a-contrario count of the project's acceptance
+(``georeg.register.acceptance.decide``), which scores the matches as independent keypoint
+correspondences.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import cv2
+import numpy as np
+import scipy.fft as sfft
+
+DEFAULTS: dict[str, Any] = {
+    "nscale": 4,  # log-Gabor scales (RIFT)
+    "norient": 6,  # orientations over 180 deg (RIFT)
+    "min_wavelength": 3.0,  # px, smallest scale
+    "mult": 1.6,  # wavelength ratio between scales
+    "sigma_onf": 0.75,  # radial bandwidth
+    "k": 1.0,  # noise threshold: mean + k sigma of the noise energy (RIFT)
+    "g": 3.0,  # sharpness of the frequency-spread weighting (RIFT)
+    "cut_off": 0.5,  # frequency spread below which phase congruency is down-weighted
+    "detector": "fast",  # fast (FAST on the max-moment map, grid-spread) | gftt
+    "kp_per_mpx": 20000,  # keypoints per Mpx of valid image
+    "max_kp": 5000,
+    "grid": 8,  # spread: at most max_kp / grid^2 keypoints per grid cell
+    "patch": 72,  # descriptor patch side (px, at the map GSD)
+    "cells": 6,  # patch cells per side
+    "rotations": 12,  # query rotations over 360 deg
+    "match": "mutual",  # mutual nearest neighbours | ratio
+    "ratio": 0.9,
+    "reproj_px": 3.0,  # RANSAC similarity threshold (map px)
+    "ransac_iters": 5000,
+    "max_map_px": 16_000_000,  # larger maps are split into windows
+}
+
+
+def rift_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
+    """DEFAULTS updated by ``conf``; unknown keys are an error."""
+    conf = dict(conf or {})
+    bad = sorted(set(conf) - set(DEFAULTS) - {"enabled"})
+    if bad:
+        raise ValueError(f"register.rift: unknown key(s) {bad}; known: {sorted(DEFAULTS)}")
+    return {**DEFAULTS, **conf}
+
+
+def _filters(shape: tuple[int, int], c: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Radial log-Gabor filters (nscale, h, w) and angular spreads (norient, h, w)."""
+    h, w = shape
+    fy = sfft.fftfreq(h)[:, None]
+    fx = sfft.fftfreq(w)[None, :]
+    radius = np.sqrt(fx**2 + fy**2)
+    radius[0, 0] = 1.0
+    theta = np.arctan2(-fy, fx)
+    lp = 1.0 / (1.0 + (radius / 0.45) ** 30)  # Butterworth low-pass, order 15
+    radial = np.empty((c["nscale"], h, w), np.float32)
+    for s in range(c["nscale"]):
+        fo = 1.0 / (c["min_wavelength"] * c["mult"] ** s)
+        radial[s] = np.exp(-(np.log(radius / fo) ** 2) / (2 * math.log(c["sigma_onf"]) ** 2)) * lp
+        radial[s, 0, 0] = 0.0
+    no = c["norient"]
+    spread = np.empty((no, h, w), np.float32)
+    st, ct = np.sin(theta), np.cos(theta)
+    for o in range(no):
+        a = o * math.pi / no
+        ds = st * math.cos(a) - ct * math.sin(a)
+        dc = ct * math.cos(a) + st * math.sin(a)
+        dtheta = np.minimum(np.abs(np.arctan2(ds, dc)) * no / 2, math.pi)
+        spread[o] = (np.cos(dtheta) + 1) / 2
+    return radial, spread
+
+
+def phase_maps(img: np.ndarray, valid: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Phase congruency maximum moment map (h, w) and maximum index map (h, w, uint8 0..norient-1).
+
+    ``img`` float or uint8, ``valid`` bool: nodata is filled with the valid mean before the FFT
+    and the image is padded (mean) to an FFT-friendly size, so no edge appears at the border."""
+    c = rift_conf(conf)
+    h, w = img.shape
+    pad = int(2 * c["min_wavelength"] * c["mult"] ** (c["nscale"] - 1))
+    H, W = sfft.next_fast_len(h + 2 * pad), sfft.next_fast_len(w + 2 * pad)
+    x = np.asarray(img, np.float32)
+    mean = float(x[valid].mean()) if valid.any() else 0.0
+    canvas = np.full((H, W), mean, np.float32)
+    canvas[pad : pad + h, pad : pad + w] = np.where(valid, x, mean)
+    F = sfft.fft2(canvas, workers=1)
+    radial, spread = _filters((H, W), c)
+    eps = 1e-4
+    no, ns = c["norient"], c["nscale"]
+    cov = np.zeros((3, h, w), np.float32)  # sum cos^2, sum sin^2, sum cos sin of PC_o
+    best_amp = np.full((h, w), -1.0, np.float32)
+    mim = np.zeros((h, w), np.uint8)
+    for o in range(no):
+        sum_e = np.zeros((h, w), np.float32)
+        sum_o = np.zeros((h, w), np.float32)
+        sum_an = np.zeros((h, w), np.float32)
+        max_an = np.zeros((h, w), np.float32)
+        eo = []
+        tau = 0.0
+        for s in range(ns):
+            r = sfft.ifft2(F * (radial[s] * spread[o]), workers=1)[pad : pad + h, pad : pad + w]
+            re, im = r.real.astype(np.float32), r.imag.astype(np.float32)
+            an = np.hypot(re, im)
+            if s == 0:
+                tau = float(np.median(an[valid])) / math.sqrt(math.log(4)) if valid.any() else 0.0
+            sum_e += re
+            sum_o += im
+            sum_an += an
+            np.maximum(max_an, an, out=max_an)
+            eo.append((re, im))
+        x_energy = np.sqrt(sum_e**2 + sum_o**2) + eps
+        me, mo = sum_e / x_energy, sum_o / x_energy
+        energy = np.zeros((h, w), np.float32)
+        for re, im in eo:
+            energy += re * me + im * mo - np.abs(re * mo - im * me)
+        inv = 1.0 / c["mult"]
+        total_tau = tau * (1 - inv**ns) / (1 - inv)
+        t = (total_tau * math.sqrt(math.pi / 2) + c["k"] * total_tau * math.sqrt((4 - math.pi) / 2)) / 1.7
+        energy = np.maximum(energy - t, 0)
+        width = (sum_an / (max_an + eps) - 1) / (ns - 1)
+        weight = 1.0 / (1.0 + np.exp((c["cut_off"] - width) * c["g"]))
+        pc = weight * energy / (sum_an + eps)
+        a = o * math.pi / no
+        cx, cy = pc * math.cos(a), pc * math.sin(a)
+        cov[0] += cx * cx
+        cov[1] += cy * cy
+        cov[2] += cx * cy
+        better = sum_an > best_amp
+        mim[better] = o
+        best_amp = np.maximum(best_amp, sum_an)
+    cov /= no / 2
+    denom = np.sqrt(4 * cov[2] ** 2 + (cov[0] - cov[1]) ** 2) + eps
+    moment = (cov[0] + cov[1] + denom) / 2
+    return moment, mim
+
+
+def keypoints(moment: np.ndarray, valid: np.ndarray, conf: dict[str, Any]) -> np.ndarray:
+    """(n, 2) keypoints (col, row) on the maximum moment map, spread over a grid."""
+    c = rift_conf(conf)
+    n = int(min(c["max_kp"], max(50, valid.sum() * c["kp_per_mpx"] / 1e6)))
+    inner = cv2.erode(valid.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+    hi = float(np.percentile(moment[inner], 99.5)) if inner.any() else 1.0
+    m8 = np.clip(moment / max(hi, 1e-9) * 255, 0, 255).astype(np.uint8)
+    m8[~inner] = 0
+    if c["detector"] == "gftt":
+        p = cv2.goodFeaturesToTrack(m8, n, 1e-3, 3, mask=inner.astype(np.uint8))
+        return np.zeros((0, 2)) if p is None else p.reshape(-1, 2).astype(np.float64)
+    if c["detector"] != "fast":
+        raise ValueError(f"register.rift.detector: {c['detector']!r} (fast | gftt)")
+    kps = cv2.FastFeatureDetector_create(threshold=5, nonmaxSuppression=True).detect(m8)
+    if not kps:
+        return np.zeros((0, 2))
+    xy = np.array([k.pt for k in kps], np.float64)
+    resp = np.array([k.response for k in kps], np.float64)
+    h, w = moment.shape
+    g = int(c["grid"])
+    cell = (np.minimum(xy[:, 1] * g // h, g - 1) * g + np.minimum(xy[:, 0] * g // w, g - 1)).astype(int)
+    order = np.lexsort((-resp, cell))  # by cell, strongest first
+    rank = np.arange(len(order)) - np.searchsorted(cell[order], cell[order])
+    per_cell = max(1, int(math.ceil(n / g**2)))
+    keep = order[rank < per_cell]
+    keep = keep[np.argsort(-resp[keep])][:n]
+    return xy[keep]
+
+
+def descriptors(mim: np.ndarray, valid: np.ndarray, xy: np.ndarray, conf: dict[str, Any]) -> np.ndarray:
+    """(n, cells^2 norient) L2-normalised histograms of MIM values in the patch cells."""
+    c = rift_conf(conf)
+    no, nc, patch = c["norient"], int(c["cells"]), int(c["patch"])
+    h, w = mim.shape
+    onehot = (mim[..., None] == np.arange(no, dtype=np.uint8)) & valid[..., None]
+    integ = np.zeros((h + 1, w + 1, no), np.float32)
+    integ[1:, 1:] = onehot.cumsum(0, dtype=np.float32).cumsum(1, dtype=np.float32)
+    edges = np.round(np.linspace(-patch / 2, patch / 2, nc + 1)).astype(int)
+    x0 = np.round(xy[:, 0]).astype(int)[:, None] + edges[None, :]  # (n, nc+1)
+    y0 = np.round(xy[:, 1]).astype(int)[:, None] + edges[None, :]
+    xc, yc = np.clip(x0, 0, w), np.clip(y0, 0, h)
+    ya, yb = yc[:, :-1, None], yc[:, 1:, None]  # (n, nc, 1) rows of cells
+    xa, xb = xc[:, None, :-1], xc[:, None, 1:]  # (n, 1, nc)
+    d = integ[yb, xb] - integ[ya, xb] - integ[yb, xa] + integ[ya, xa]  # (n, nc, nc, no)
+    d = d.reshape(len(xy), -1)
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+
+
+def features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Keypoints (n, 2: col, row) and descriptors of a uint8 image (0 = nodata)."""
+    valid = u8 > 0
+    moment, mim = phase_maps(u8, valid, conf)
+    xy = keypoints(moment, valid, conf)
+    return xy, descriptors(mim, valid, xy, conf).astype(np.float32)
+
+
+def map_features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """``features`` of a map, by overlapping windows when it has more than ``max_map_px`` pixels
+    (memory bounded by the window; keypoints kept in the window's core only)."""
+    c = rift_conf(conf)
+    h, w = u8.shape
+    if h * w <= c["max_map_px"]:
+        return features(u8, c)
+    side = int(math.sqrt(c["max_map_px"]))
+    m = int(c["patch"])
+    xys, ds = [], []
+    for r0 in range(0, h, side):
+        for c0 in range(0, w, side):
+            ra, ca = max(0, r0 - m), max(0, c0 - m)
+            win = u8[ra : min(h, r0 + side + m), ca : min(w, c0 + side + m)]
+            if not win.any():
+                continue
+            xy, d = features(win, c)
+            xy = xy + (ca, ra)
+            core = (xy[:, 0] >= c0) & (xy[:, 0] < c0 + side) & (xy[:, 1] >= r0) & (xy[:, 1] < r0 + side)
+            xys.append(xy[core])
+            ds.append(d[core])
+    if not xys:
+        return np.zeros((0, 2)), np.zeros((0, c["cells"] ** 2 * c["norient"]), np.float32)
+    return np.vstack(xys), np.vstack(ds)
+
+
+def match(dq: np.ndarray, dm: np.ndarray, conf: dict[str, Any], chunk: int = 4096) -> np.ndarray:
+    """(k, 2) index pairs (query, map): mutual nearest neighbours or the ratio test (L2 on
+    unit vectors = largest dot product), by chunks of the query."""
+    c = rift_conf(conf)
+    if len(dq) == 0 or len(dm) < 2:
+        return np.zeros((0, 2), int)
+    nn = np.empty(len(dq), int)
+    ok = np.ones(len(dq), bool)
+    best_q = np.full(len(dm), -np.inf, np.float32)
+    arg_q = np.zeros(len(dm), int)
+    for a in range(0, len(dq), chunk):
+        s = dq[a : a + chunk] @ dm.T
+        top2 = np.argpartition(-s, 1, axis=1)[:, :2]
+        s2 = np.take_along_axis(s, top2, axis=1)
+        first = np.argmax(s2, axis=1)
+        nn[a : a + chunk] = top2[np.arange(len(s)), first]
+        if c["match"] == "ratio":
+            d1 = np.sqrt(np.maximum(2 - 2 * s2.max(axis=1), 0))
+            d2 = np.sqrt(np.maximum(2 - 2 * s2.min(axis=1), 0))
+            ok[a : a + chunk] = d1 < c["ratio"] * d2
+        col = s.max(axis=0)
+        better = col > best_q
+        arg_q[better] = a + np.argmax(s[:, better], axis=0)
+        best_q = np.maximum(best_q, col)
+    qi = np.arange(len(dq))
+    if c["match"] == "mutual":
+        ok = arg_q[nn] == qi
+    elif c["match"] != "ratio":
+        raise ValueError(f"register.rift.match: {c['match']!r} (mutual | ratio)")
+    return np.c_[qi[ok], nn[ok]]
+
+
+def _rotated(u8: np.ndarray, f: float, angle: float) -> tuple[np.ndarray, np.ndarray]:
+    """The query scaled by ``f`` and rotated by ``angle`` deg on a canvas holding it whole, and
+    the 3 x 3 query px -> canvas px (pixel centres)."""
+    h, w = u8.shape
+    hs, ws = h * f, w * f
+    D = int(math.ceil(math.hypot(hs, ws))) + 2
+    S = np.array([[f, 0, 0.5 * f - 0.5], [0, f, 0.5 * f - 0.5], [0, 0, 1.0]])
+    R = np.vstack([cv2.getRotationMatrix2D(((ws - 1) / 2, (hs - 1) / 2), float(angle), 1.0), [0, 0, 1]])
+    R[:2, 2] += ((D - 1) / 2 - (ws - 1) / 2, (D - 1) / 2 - (hs - 1) / 2)
+    A = R @ S
+    interp = cv2.INTER_AREA if f < 1 else cv2.INTER_LINEAR
+    img = cv2.warpAffine(u8, A[:2], (D, D), flags=interp, borderValue=0)
+    valid = cv2.warpAffine((u8 > 0).astype(np.uint8), A[:2], (D, D), flags=cv2.INTER_NEAREST) > 0
+    return np.where(valid, np.maximum(img, 1), 0).astype(np.uint8), A
+
+
+def register(
+    query_u8: np.ndarray,
+    map_u8: np.ndarray,
+    scale: float,
+    acc_conf: dict[str, Any],
+    conf: dict[str, Any] | None = None,
+    seed: int = 0,
+    map_feats: tuple[np.ndarray, np.ndarray] | None = None,
+    gsd_m: float | None = None,
+    map_gsd_m: float = 1.0,
+) -> dict[str, Any]:
+    """The query (uint8, 0 = nodata) against the map (uint8, 0 = nodata): ``scale`` = map px per
+    query px (the known GSD ratio). Every rotation's mutual matches -> RANSAC similarity ->
+    ``acceptance.decide`` (residuals of all matches in map px, area = the map's valid pixels,
+    tests = the rotations). Returns ``accepted``, ``H`` (query px -> map px), ``log10_nfa``,
+    ``inliers``, ``matches``, ``tests``, ``angle_deg``, ``lowest_log10_nfa`` and ``decision``."""
+    from georeg.register import acceptance
+
+    c = rift_conf(conf)
+    mxy, md = map_feats if map_feats is not None else map_features(map_u8, c)
+    area = float((map_u8 > 0).sum())
+    n_rot = int(c["rotations"])
+    h, w = query_u8.shape
+    to_m = np.diag([map_gsd_m, -map_gsd_m, 1.0])  # map px -> north-up map units (handedness)
+    best: dict[str, Any] = {"accepted": False, "H": None, "log10_nfa": math.inf, "inliers": 0,
+                            "matches": 0, "tests": n_rot, "angle_deg": None, "decision": None}  # fmt: skip
+    for k in range(n_rot):
+        angle = 360.0 * k / n_rot
+        img, A = _rotated(query_u8, scale, angle)
+        qxy, qd = features(img, c)
+        pairs = match(qd, md, c)
+        if len(pairs) < 6:
+            continue
+        q = (np.c_[qxy[pairs[:, 0]], np.ones(len(pairs))] @ np.linalg.inv(A).T)[:, :2]
+        m = mxy[pairs[:, 1]]
+        cv2.setRNGSeed(int(seed) + k)
+        S, inl = cv2.estimateAffinePartial2D(q.astype(np.float32), m.astype(np.float32),
+                                             method=cv2.RANSAC, ransacReprojThreshold=c["reproj_px"],
+                                             maxIters=int(c["ransac_iters"]), confidence=0.999)  # fmt: skip
+        if S is None:
+            continue
+        H = np.vstack([S, [0, 0, 1.0]])
+        res = np.linalg.norm((np.c_[q, np.ones(len(q))] @ H.T)[:, :2] - m, axis=1)
+        inl = res <= c["reproj_px"]
+        dec = acceptance.decide(to_m @ H, res, int(inl.sum()), area, w, h,
+                                gsd_m if gsd_m is not None else scale * map_gsd_m, acc_conf,
+                                n_candidates=n_rot, inlier_q_xy=q[inl])  # fmt: skip
+        lnfa = float(dec.get("log10_nfa", math.inf))
+        key = (bool(dec["accepted"]), -lnfa)
+        if best["decision"] is None or key > (bool(best["accepted"]), -best["log10_nfa"]):
+            best.update(accepted=bool(dec["accepted"]), H=H, log10_nfa=lnfa,
+                        inliers=int(inl.sum()), matches=len(pairs), angle_deg=angle, decision=dec)  # fmt: skip
+    best["lowest_log10_nfa"] = best["log10_nfa"]
+    return best
