@@ -38,6 +38,7 @@ DEFAULTS: dict[str, Any] = {
     "rotations": 12,  # query rotations over 360 deg
     "match": "mutual",  # mutual nearest neighbours | ratio
     "ratio": 0.9,
+    "thin_px": 36.0,  # one match per query cell of this side (nearby patches overlap: dependent)
     "reproj_px": 3.0,  # RANSAC similarity threshold (map px)
     "ransac_iters": 5000,
     "max_map_px": 16_000_000,  # larger maps are split into windows
@@ -257,6 +258,47 @@ def match(dq: np.ndarray, dm: np.ndarray, conf: dict[str, Any], chunk: int = 409
     return np.c_[qi[ok], nn[ok]]
 
 
+def thin(pairs: np.ndarray, qxy: np.ndarray, qd: np.ndarray, md: np.ndarray,
+         cell_px: float) -> np.ndarray:
+    """At most one match (the most similar) per query cell of ``cell_px``: the descriptors of
+    nearby keypoints share most of their patch, so their matches are not independent tests."""
+    if cell_px <= 0 or len(pairs) == 0:
+        return pairs
+    sim = np.einsum("ij,ij->i", qd[pairs[:, 0]], md[pairs[:, 1]])
+    cell = np.floor(qxy[pairs[:, 0]] / cell_px).astype(np.int64)
+    key = cell[:, 0] * 1_000_003 + cell[:, 1]
+    order = np.lexsort((-sim, key))
+    first = np.r_[True, key[order][1:] != key[order][:-1]]
+    return pairs[np.sort(order[first])]
+
+
+def similarity_lsq(q: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """Least-squares similarity q -> m (Umeyama, no reflection), 3 x 3."""
+    mq, mm = q.mean(0), m.mean(0)
+    a, b = q - mq, m - mm
+    U, S, Vt = np.linalg.svd(b.T @ a / len(q))
+    d = np.sign(np.linalg.det(U @ Vt))
+    D = np.diag([1.0, d])
+    R = U @ D @ Vt
+    s = float(np.trace(np.diag(S) @ D) / max((a**2).sum() / len(q), 1e-12))
+    H = np.eye(3)
+    H[:2, :2] = s * R
+    H[:2, 2] = mm - s * R @ mq
+    return H
+
+
+def refit(H: np.ndarray, q: np.ndarray, m: np.ndarray, tol_px: float, rounds: int = 3) -> np.ndarray:
+    """Least-squares similarity on every (unthinned) match within ``tol_px`` of H, iterated; the
+    decision was made on the thinned matches, this only sharpens the pose."""
+    for _ in range(rounds):
+        res = np.linalg.norm((np.c_[q, np.ones(len(q))] @ H.T)[:, :2] - m, axis=1)
+        sel = res <= tol_px
+        if sel.sum() < 3:
+            break
+        H = similarity_lsq(q[sel], m[sel])
+    return H
+
+
 def _rotated(u8: np.ndarray, f: float, angle: float) -> tuple[np.ndarray, np.ndarray]:
     """The query scaled by ``f`` and rotated by ``angle`` deg on a canvas holding it whole, and
     the 3 x 3 query px -> canvas px (pixel centres)."""
@@ -306,7 +348,13 @@ def register(
         pairs = match(qd, md, c)
         if len(pairs) < 6:
             continue
-        q = (np.c_[qxy[pairs[:, 0]], np.ones(len(pairs))] @ np.linalg.inv(A).T)[:, :2]
+        Ainv = np.linalg.inv(A)
+        q_all = (np.c_[qxy[pairs[:, 0]], np.ones(len(pairs))] @ Ainv.T)[:, :2]
+        m_all = mxy[pairs[:, 1]]
+        pairs = thin(pairs, qxy, qd, md, float(c["thin_px"]))
+        if len(pairs) < 6:
+            continue
+        q = (np.c_[qxy[pairs[:, 0]], np.ones(len(pairs))] @ Ainv.T)[:, :2]
         m = mxy[pairs[:, 1]]
         cv2.setRNGSeed(int(seed) + k)
         S, inl = cv2.estimateAffinePartial2D(q.astype(np.float32), m.astype(np.float32),
@@ -323,6 +371,7 @@ def register(
         lnfa = float(dec.get("log10_nfa", math.inf))
         key = (bool(dec["accepted"]), -lnfa)
         if best["decision"] is None or key > (bool(best["accepted"]), -best["log10_nfa"]):
+            H = refit(H, q_all, m_all, c["reproj_px"])
             best.update(accepted=bool(dec["accepted"]), H=H, log10_nfa=lnfa,
                         inliers=int(inl.sum()), matches=len(pairs), angle_deg=angle, decision=dec)  # fmt: skip
     best["lowest_log10_nfa"] = best["log10_nfa"]
