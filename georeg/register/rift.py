@@ -39,7 +39,9 @@ DEFAULTS: dict[str, Any] = {
     "match": "mutual",  # mutual nearest neighbours | ratio
     "ratio": 0.9,
     "thin_px": 36.0,  # one match per query cell of this side (nearby patches overlap: dependent)
-    "reproj_px": 3.0,  # RANSAC similarity threshold (map px)
+    "model": "rigid",  # rigid (scale = the known GSD ratio; every pair of matches tried) | similarity
+    "max_angle_deg": 20.0,  # rigid: largest rotation left after the query's rotation step
+    "reproj_px": 3.0,  # RANSAC threshold (map px)
     "ransac_iters": 5000,
     "max_map_px": 16_000_000,  # larger maps are split into windows
 }
@@ -272,22 +274,23 @@ def thin(pairs: np.ndarray, qxy: np.ndarray, qd: np.ndarray, md: np.ndarray,
     return pairs[np.sort(order[first])]
 
 
-def similarity_lsq(q: np.ndarray, m: np.ndarray) -> np.ndarray:
-    """Least-squares similarity q -> m (Umeyama, no reflection), 3 x 3."""
+def similarity_lsq(q: np.ndarray, m: np.ndarray, with_scale: bool = True) -> np.ndarray:
+    """Least-squares similarity (or rigid: scale 1) q -> m (Umeyama, no reflection), 3 x 3."""
     mq, mm = q.mean(0), m.mean(0)
     a, b = q - mq, m - mm
     U, S, Vt = np.linalg.svd(b.T @ a / len(q))
     d = np.sign(np.linalg.det(U @ Vt))
     D = np.diag([1.0, d])
     R = U @ D @ Vt
-    s = float(np.trace(np.diag(S) @ D) / max((a**2).sum() / len(q), 1e-12))
+    s = float(np.trace(np.diag(S) @ D) / max((a**2).sum() / len(q), 1e-12)) if with_scale else 1.0
     H = np.eye(3)
     H[:2, :2] = s * R
     H[:2, 2] = mm - s * R @ mq
     return H
 
 
-def refit(H: np.ndarray, q: np.ndarray, m: np.ndarray, tol_px: float, rounds: int = 3) -> np.ndarray:
+def refit(H: np.ndarray, q: np.ndarray, m: np.ndarray, tol_px: float, with_scale: bool = True,
+          rounds: int = 3) -> np.ndarray:
     """Least-squares similarity on every (unthinned) match within ``tol_px`` of H, iterated; the
     decision was made on the thinned matches, this only sharpens the pose."""
     for _ in range(rounds):
@@ -295,8 +298,35 @@ def refit(H: np.ndarray, q: np.ndarray, m: np.ndarray, tol_px: float, rounds: in
         sel = res <= tol_px
         if sel.sum() < 3:
             break
-        H = similarity_lsq(q[sel], m[sel])
+        H = similarity_lsq(q[sel], m[sel], with_scale)
     return H
+
+
+def rigid_ransac(q: np.ndarray, m: np.ndarray, tol_px: float, max_angle_deg: float) -> np.ndarray | None:
+    """Exhaustive 2-point search for a rotation + translation q -> m (scale 1, rotation within
+    ``max_angle_deg``): every pair of matches is a hypothesis; the one with most matches within
+    ``tol_px`` (then the smallest sum of their residuals) wins. Deterministic, vectorised."""
+    n = len(q)
+    i, j = np.triu_indices(n, 1)
+    dq, dm = q[j] - q[i], m[j] - m[i]
+    lq, lm = np.linalg.norm(dq, axis=1), np.linalg.norm(dm, axis=1)
+    ang = np.arctan2(dq[:, 0] * dm[:, 1] - dq[:, 1] * dm[:, 0], (dq * dm).sum(1))
+    ok = (lq > 4 * tol_px) & (np.abs(lm / np.maximum(lq, 1e-9) - 1) < 0.2)
+    ok &= np.abs(ang) <= math.radians(max_angle_deg)
+    if not ok.any():
+        return None
+    i, j, ang = i[ok], j[ok], ang[ok]
+    cs, sn = np.cos(ang), np.sin(ang)
+    cq, cm = (q[i] + q[j]) / 2, (m[i] + m[j]) / 2
+    tx = cm[:, 0] - (cs * cq[:, 0] - sn * cq[:, 1])
+    ty = cm[:, 1] - (sn * cq[:, 0] + cs * cq[:, 1])
+    px = cs[:, None] * q[None, :, 0] - sn[:, None] * q[None, :, 1] + tx[:, None]
+    py = sn[:, None] * q[None, :, 0] + cs[:, None] * q[None, :, 1] + ty[:, None]
+    res = np.hypot(px - m[None, :, 0], py - m[None, :, 1])
+    inl = res <= tol_px
+    score = inl.sum(1) - np.where(inl, res, 0).sum(1) / (tol_px * n + 1)
+    b = int(np.argmax(score))
+    return np.array([[cs[b], -sn[b], tx[b]], [sn[b], cs[b], ty[b]], [0, 0, 1.0]])
 
 
 def _rotated(u8: np.ndarray, f: float, angle: float) -> tuple[np.ndarray, np.ndarray]:
@@ -327,7 +357,7 @@ def register(
     map_gsd_m: float = 1.0,
 ) -> dict[str, Any]:
     """The query (uint8, 0 = nodata) against the map (uint8, 0 = nodata): ``scale`` = map px per
-    query px (the known GSD ratio). Every rotation's mutual matches -> RANSAC similarity ->
+    query px (the known GSD ratio). Every rotation's mutual matches, thinned -> RANSAC (``model``) ->
     ``acceptance.decide`` (residuals of all matches in map px, area = the map's valid pixels,
     tests = the rotations). Returns ``accepted``, ``H`` (query px -> map px), ``log10_nfa``,
     ``inliers``, ``matches``, ``tests``, ``angle_deg``, ``lowest_log10_nfa`` and ``decision``."""
@@ -348,21 +378,27 @@ def register(
         pairs = match(qd, md, c)
         if len(pairs) < 6:
             continue
-        Ainv = np.linalg.inv(A)
-        q_all = (np.c_[qxy[pairs[:, 0]], np.ones(len(pairs))] @ Ainv.T)[:, :2]
-        m_all = mxy[pairs[:, 1]]
+        qc_all, m_all = qxy[pairs[:, 0]], mxy[pairs[:, 1]]  # canvas px (map GSD), map px
         pairs = thin(pairs, qxy, qd, md, float(c["thin_px"]))
         if len(pairs) < 6:
             continue
-        q = (np.c_[qxy[pairs[:, 0]], np.ones(len(pairs))] @ Ainv.T)[:, :2]
-        m = mxy[pairs[:, 1]]
-        cv2.setRNGSeed(int(seed) + k)
-        S, inl = cv2.estimateAffinePartial2D(q.astype(np.float32), m.astype(np.float32),
-                                             method=cv2.RANSAC, ransacReprojThreshold=c["reproj_px"],
-                                             maxIters=int(c["ransac_iters"]), confidence=0.999)  # fmt: skip
-        if S is None:
+        qc, m = qxy[pairs[:, 0]], mxy[pairs[:, 1]]
+        rigid = c["model"] == "rigid"
+        if rigid:
+            Hc = rigid_ransac(qc, m, c["reproj_px"], c["max_angle_deg"])
+        elif c["model"] == "similarity":
+            cv2.setRNGSeed(int(seed) + k)
+            S = cv2.estimateAffinePartial2D(qc.astype(np.float32), m.astype(np.float32),
+                                            method=cv2.RANSAC, ransacReprojThreshold=c["reproj_px"],
+                                            maxIters=int(c["ransac_iters"]), confidence=0.999)[0]  # fmt: skip
+            Hc = None if S is None else np.vstack([S, [0, 0, 1.0]])
+        else:
+            raise ValueError(f"register.rift.model: {c['model']!r} (rigid | similarity)")
+        if Hc is None:
             continue
-        H = np.vstack([S, [0, 0, 1.0]])
+        Ainv = np.linalg.inv(A)
+        q = (np.c_[qc, np.ones(len(qc))] @ Ainv.T)[:, :2]  # query px
+        H = Hc @ A
         res = np.linalg.norm((np.c_[q, np.ones(len(q))] @ H.T)[:, :2] - m, axis=1)
         inl = res <= c["reproj_px"]
         dec = acceptance.decide(to_m @ H, res, int(inl.sum()), area, w, h,
@@ -371,7 +407,7 @@ def register(
         lnfa = float(dec.get("log10_nfa", math.inf))
         key = (bool(dec["accepted"]), -lnfa)
         if best["decision"] is None or key > (bool(best["accepted"]), -best["log10_nfa"]):
-            H = refit(H, q_all, m_all, c["reproj_px"])
+            H = refit(Hc, qc_all, m_all, c["reproj_px"], not rigid) @ A
             best.update(accepted=bool(dec["accepted"]), H=H, log10_nfa=lnfa,
                         inliers=int(inl.sum()), matches=len(pairs), angle_deg=angle, decision=dec)  # fmt: skip
     best["lowest_log10_nfa"] = best["log10_nfa"]
