@@ -316,6 +316,7 @@ METHODS: dict[str, dict[str, Any]] = {
     # docs/experiments/2026-11-26-devset.md
     # RIFT-style phase-congruency features (georeg/register/rift.py), verified by the acceptance
     "src_rift": {"rift": {}},
+    "src_rift12": {"rift": {"rotations": 12, "max_angle_deg": 20.0}},  # v3: 30 deg steps
 }
 _RIFT_MAPS: dict[tuple[str, str], Any] = {}  # (scene, conf) -> map features (built once)
 

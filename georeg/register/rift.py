@@ -35,13 +35,14 @@ DEFAULTS: dict[str, Any] = {
     "grid": 8,  # spread: at most max_kp / grid^2 keypoints per grid cell
     "patch": 72,  # descriptor patch side (px, at the map GSD)
     "cells": 6,  # patch cells per side
-    "rotations": 12,  # query rotations over 360 deg
+    "rotations": 36,  # query rotations over 360 deg (MIM histograms are sensitive to rotation)
     "match": "mutual",  # mutual nearest neighbours | ratio
     "ratio": 0.9,
     "thin_px": 36.0,  # one match per query cell of this side (nearby patches overlap: dependent)
     "model": "rigid",  # rigid (scale = the known GSD ratio; every pair of matches tried) | similarity
-    "max_angle_deg": 20.0,  # rigid: largest rotation left after the query's rotation step
+    "max_angle_deg": 7.0,  # rigid: largest rotation left after the query's rotation step
     "reproj_px": 3.0,  # RANSAC threshold (map px)
+    "nfa_cap_px": 6.0,  # residuals above this count as misses in the NFA (a pose certified to it)
     "ransac_iters": 5000,
     "max_map_px": 16_000_000,  # larger maps are split into windows
 }
@@ -401,7 +402,8 @@ def register(
         H = Hc @ A
         res = np.linalg.norm((np.c_[q, np.ones(len(q))] @ H.T)[:, :2] - m, axis=1)
         inl = res <= c["reproj_px"]
-        dec = acceptance.decide(to_m @ H, res, int(inl.sum()), area, w, h,
+        capped = np.where(res <= c["nfa_cap_px"], res, 1e9)  # a miss: p = 1, n unchanged
+        dec = acceptance.decide(to_m @ H, capped, int(inl.sum()), area, w, h,
                                 gsd_m if gsd_m is not None else scale * map_gsd_m, acc_conf,
                                 n_candidates=n_rot, inlier_q_xy=q[inl])  # fmt: skip
         lnfa = float(dec.get("log10_nfa", math.inf))
