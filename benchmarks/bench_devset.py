@@ -317,6 +317,8 @@ METHODS: dict[str, dict[str, Any]] = {
     # RIFT-style phase-congruency features (georeg/register/rift.py), verified by the acceptance
     "src_rift": {"rift": {}},
     "src_rift12": {"rift": {"rotations": 12, "max_angle_deg": 20.0}},  # v3: 30 deg steps
+    # the workflow with the rift source enabled (fuse.SOURCES: runs when nothing else accepted)
+    "wf_rift": {"pipeline": {"rift": {"enabled": True}}, "bands": 1},
 }
 _RIFT_MAPS: dict[tuple[str, str], Any] = {}  # (scene, conf) -> map features (built once)
 

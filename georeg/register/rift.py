@@ -414,3 +414,57 @@ def register(
                         inliers=int(inl.sum()), matches=len(pairs), angle_deg=angle, decision=dec)  # fmt: skip
     best["lowest_log10_nfa"] = best["log10_nfa"]
     return best
+
+
+def source(q: Any, view: Any, parts: list[dict[str, Any]],
+           conf: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, Any]]:  # fmt: skip
+    """Source ``rift`` (``register.rift``; ``georeg.register.fuse.SOURCES``): the query's primary
+    band against the whole orthophoto (read once through ``view.read_window``, shrunk to the
+    query's GSD when finer), ``register``; an accepted pose becomes one more (whole-query) part.
+    Not run without the query's GSD, without an orthophoto, or above ``max_map_px`` map pixels
+    (the whole map is read: memory ~60 bytes per map pixel). Returns the parts and the record."""
+    import time
+
+    from georeg.register.dense import window_u8
+
+    rc = dict(conf.get("rift") or {})
+    if not rc.pop("enabled", False):
+        return parts, {"ran": False, "reason": "disabled"}
+    c = rift_conf(rc)
+    why = ("the query's GSD is unknown" if q.gsd is None else
+           "no orthophoto" if view.read_window is None else "")  # fmt: skip
+    b = view.source.bounds
+    g = max(float(view.source.gsd_m), float(q.gsd or 0.0))
+    if not why and (b[2] - b[0]) * (b[3] - b[1]) / g**2 > c["max_map_px"]:
+        why = f"map larger than max_map_px ({c['max_map_px']:.0f}) at the query's GSD"
+    if why:
+        return parts, {"ran": False, "reason": why}
+    t0 = time.perf_counter()
+    got = view.read_window(tuple(b))
+    if got is None:
+        return parts, {"ran": False, "reason": "orthophoto window unreadable"}
+    gray, A = got
+    m_px = float(np.sqrt(abs(np.linalg.det(A[:2, :2]))))
+    f = min(1.0, m_px / float(q.gsd))  # the map shrunk to the query's GSD when finer
+    m_u8 = window_u8(gray)
+    if f < 1.0:
+        size = (max(1, round(m_u8.shape[1] * f)), max(1, round(m_u8.shape[0] * f)))
+        ok = cv2.resize((m_u8 > 0).astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
+        m_u8 = np.where(ok > 0, np.maximum(cv2.resize(m_u8, size, interpolation=cv2.INTER_AREA), 1), 0)
+        A = A @ np.array([[1 / f, 0, 0.5 / f - 0.5], [0, 1 / f, 0.5 / f - 0.5], [0, 0, 1.0]])
+    u8 = q.u8 if q.u8.ndim == 2 else q.u8[0]
+    r = register(u8, m_u8.astype(np.uint8), float(q.gsd) / (m_px / f), conf.get("acceptance") or {},
+                 c, q.seed, gsd_m=float(q.gsd), map_gsd_m=m_px / f)  # fmt: skip
+    H = None if r["H"] is None else A @ r["H"]
+    rec = {"ran": True, "candidates": int(r["tests"]), "accepted": r["accepted"],
+           "log10_nfa": r["log10_nfa"], "inliers": r["inliers"], "matches": r["matches"],
+           "angle_deg": r["angle_deg"], "map_px": int(m_u8.size),
+           "reason": "" if r["decision"] is None else r["decision"].get("reason", ""),
+           "seconds": time.perf_counter() - t0}  # fmt: skip
+    if r["accepted"] and H is not None:
+        part = {"accepted": True, "homography": H.tolist(), "log10_nfa": r["log10_nfa"],
+                "inliers": r["inliers"], "matches": r["matches"], "residual_px": None,
+                "method": "rift", "part": len(parts), "rows": [0, u8.shape[0]], "whole_query": True,
+                "candidates_tried": int(r["tests"]), "candidates": []}  # fmt: skip
+        parts = [*parts, part]
+    return parts, rec
