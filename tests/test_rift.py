@@ -93,3 +93,26 @@ def test_srif_optical_infrared_pair(shared_data):
     pts = np.c_[uu.ravel(), vv.ravel()]
     err = np.linalg.norm(matching.apply_h(r["H"], pts) - matching.apply_h(np.linalg.inv(A0), pts), axis=1)
     assert np.median(err) <= 8.0, np.median(err)
+
+
+def test_source_adds_a_whole_query_part():
+    """``rift.source`` (fuse.SOURCES): disabled by default; enabled, the orthophoto read through
+    ``read_window`` gives one more accepted part whose homography maps query px to map x, y."""
+    from georeg.register.search import MapSource, MapView, QueryInput
+
+    m = _scene(1)
+    q, truth = _query(m, (170.0, 150.0), 37.0, 160)
+    g = 2.0  # map units per map px, north-up
+    A = np.array([[g, 0, 0], [0, -g, 0], [0, 0, 1.0]])
+    src = MapSource(np.array([[0.0, -(m.shape[0] - 1) * g], [(m.shape[1] - 1) * g, 0.0]]),
+                    np.zeros((2, 128), np.float32), g)  # fmt: skip
+    view = MapView(src, lambda b: (m.astype(np.float64), A))
+    qi = QueryInput(q, None, g, [1.0], 0)  # type: ignore[arg-type]
+    conf = {"acceptance": _acc()}
+    parts, rec = rift.source(qi, view, [], conf)
+    assert parts == [] and not rec["ran"]
+    parts, rec = rift.source(qi, view, [], {**conf, "rift": {"enabled": True}})
+    assert rec["ran"] and rec["accepted"] and rec["candidates"] == rift.DEFAULTS["rotations"]
+    pts = np.array([[0, 0], [159, 0], [0, 159], [159, 159]], float)
+    err = matching.apply_h(np.array(parts[0]["homography"]), pts) - matching.apply_h(A @ truth, pts)
+    assert np.abs(err).max() < 2.0 * g
