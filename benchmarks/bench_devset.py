@@ -340,7 +340,7 @@ def run_rift(q: bx.Query, sc: bx.Scene, spec: dict[str, Any], seed: int) -> dict
         map_s = time.process_time() - c0
     reg = bx.workflow_register_conf()
     u8 = next(iter(q.bands.values()))
-    r = rift.register(u8, sc.map_gray, q.gsd / sc.map_gsd, reg["acceptance"], conf, seed,
+    r = rift.register(u8, sc.map_gray, q.gsd / sc.map_gsd, reg["acceptance"], conf,
                       _RIFT_MAPS[key], q.gsd, sc.map_gsd)  # fmt: skip
     g = sc.map_gsd
     H = None if r["H"] is None else np.diag([g, -g, 1.0]) @ r["H"]  # judged only if accepted

@@ -29,21 +29,16 @@ DEFAULTS: dict[str, Any] = {
     "k": 1.0,  # noise threshold: mean + k sigma of the noise energy (RIFT)
     "g": 3.0,  # sharpness of the frequency-spread weighting (RIFT)
     "cut_off": 0.5,  # frequency spread below which phase congruency is down-weighted
-    "detector": "fast",  # fast (FAST on the max-moment map, grid-spread) | gftt
     "kp_per_mpx": 20000,  # keypoints per Mpx of valid image
     "max_kp": 5000,
     "grid": 8,  # spread: at most max_kp / grid^2 keypoints per grid cell
     "patch": 72,  # descriptor patch side (px, at the map GSD)
     "cells": 6,  # patch cells per side
     "rotations": 36,  # query rotations over 360 deg (MIM histograms are sensitive to rotation)
-    "match": "mutual",  # mutual nearest neighbours | ratio
-    "ratio": 0.9,
     "thin_px": 36.0,  # one match per query cell of this side (nearby patches overlap: dependent)
-    "model": "rigid",  # rigid (scale = the known GSD ratio; every pair of matches tried) | similarity
     "max_angle_deg": 7.0,  # rigid: largest rotation left after the query's rotation step
     "reproj_px": 3.0,  # RANSAC threshold (map px)
     "nfa_cap_px": 6.0,  # residuals above this count as misses in the NFA (a pose certified to it)
-    "ransac_iters": 5000,
     "max_map_px": 16_000_000,  # larger maps are split into windows
 }
 
@@ -155,11 +150,6 @@ def keypoints(moment: np.ndarray, valid: np.ndarray, conf: dict[str, Any]) -> np
     hi = float(np.percentile(moment[inner], 99.5)) if inner.any() else 1.0
     m8 = np.clip(moment / max(hi, 1e-9) * 255, 0, 255).astype(np.uint8)
     m8[~inner] = 0
-    if c["detector"] == "gftt":
-        p = cv2.goodFeaturesToTrack(m8, n, 1e-3, 3, mask=inner.astype(np.uint8))
-        return np.zeros((0, 2)) if p is None else p.reshape(-1, 2).astype(np.float64)
-    if c["detector"] != "fast":
-        raise ValueError(f"register.rift.detector: {c['detector']!r} (fast | gftt)")
     kps = cv2.FastFeatureDetector_create(threshold=5, nonmaxSuppression=True).detect(m8)
     if not kps:
         return np.zeros((0, 2))
@@ -229,35 +219,23 @@ def map_features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.n
     return np.vstack(xys), np.vstack(ds)
 
 
-def match(dq: np.ndarray, dm: np.ndarray, conf: dict[str, Any], chunk: int = 4096) -> np.ndarray:
-    """(k, 2) index pairs (query, map): mutual nearest neighbours or the ratio test (L2 on
-    unit vectors = largest dot product), by chunks of the query."""
-    c = rift_conf(conf)
+def match(dq: np.ndarray, dm: np.ndarray, chunk: int = 4096) -> np.ndarray:
+    """(k, 2) index pairs (query, map) of mutual nearest neighbours (largest dot product of unit
+    vectors = smallest L2), by chunks of the query."""
     if len(dq) == 0 or len(dm) < 2:
         return np.zeros((0, 2), int)
     nn = np.empty(len(dq), int)
-    ok = np.ones(len(dq), bool)
     best_q = np.full(len(dm), -np.inf, np.float32)
     arg_q = np.zeros(len(dm), int)
     for a in range(0, len(dq), chunk):
         s = dq[a : a + chunk] @ dm.T
-        top2 = np.argpartition(-s, 1, axis=1)[:, :2]
-        s2 = np.take_along_axis(s, top2, axis=1)
-        first = np.argmax(s2, axis=1)
-        nn[a : a + chunk] = top2[np.arange(len(s)), first]
-        if c["match"] == "ratio":
-            d1 = np.sqrt(np.maximum(2 - 2 * s2.max(axis=1), 0))
-            d2 = np.sqrt(np.maximum(2 - 2 * s2.min(axis=1), 0))
-            ok[a : a + chunk] = d1 < c["ratio"] * d2
+        nn[a : a + chunk] = np.argmax(s, axis=1)
         col = s.max(axis=0)
         better = col > best_q
         arg_q[better] = a + np.argmax(s[:, better], axis=0)
         best_q = np.maximum(best_q, col)
     qi = np.arange(len(dq))
-    if c["match"] == "mutual":
-        ok = arg_q[nn] == qi
-    elif c["match"] != "ratio":
-        raise ValueError(f"register.rift.match: {c['match']!r} (mutual | ratio)")
+    ok = arg_q[nn] == qi
     return np.c_[qi[ok], nn[ok]]
 
 
@@ -290,16 +268,15 @@ def similarity_lsq(q: np.ndarray, m: np.ndarray, with_scale: bool = True) -> np.
     return H
 
 
-def refit(H: np.ndarray, q: np.ndarray, m: np.ndarray, tol_px: float, with_scale: bool = True,
-          rounds: int = 3) -> np.ndarray:
-    """Least-squares similarity on every (unthinned) match within ``tol_px`` of H, iterated; the
+def refit(H: np.ndarray, q: np.ndarray, m: np.ndarray, tol_px: float, rounds: int = 3) -> np.ndarray:
+    """Least-squares rigid fit on every (unthinned) match within ``tol_px`` of H, iterated; the
     decision was made on the thinned matches, this only sharpens the pose."""
     for _ in range(rounds):
         res = np.linalg.norm((np.c_[q, np.ones(len(q))] @ H.T)[:, :2] - m, axis=1)
         sel = res <= tol_px
         if sel.sum() < 3:
             break
-        H = similarity_lsq(q[sel], m[sel], with_scale)
+        H = similarity_lsq(q[sel], m[sel], with_scale=False)
     return H
 
 
@@ -352,13 +329,12 @@ def register(
     scale: float,
     acc_conf: dict[str, Any],
     conf: dict[str, Any] | None = None,
-    seed: int = 0,
     map_feats: tuple[np.ndarray, np.ndarray] | None = None,
     gsd_m: float | None = None,
     map_gsd_m: float = 1.0,
 ) -> dict[str, Any]:
     """The query (uint8, 0 = nodata) against the map (uint8, 0 = nodata): ``scale`` = map px per
-    query px (the known GSD ratio). Every rotation's mutual matches, thinned -> RANSAC (``model``) ->
+    query px (the known GSD ratio). Every rotation's mutual matches, thinned -> rigid fit (``rigid_ransac``) ->
     ``acceptance.decide`` (residuals of all matches in map px, area = the map's valid pixels,
     tests = the rotations). Returns ``accepted``, ``H`` (query px -> map px), ``log10_nfa``,
     ``inliers``, ``matches``, ``tests``, ``angle_deg``, ``lowest_log10_nfa`` and ``decision``."""
@@ -376,7 +352,7 @@ def register(
         angle = 360.0 * k / n_rot
         img, A = _rotated(query_u8, scale, angle)
         qxy, qd = features(img, c)
-        pairs = match(qd, md, c)
+        pairs = match(qd, md)
         if len(pairs) < 6:
             continue
         qc_all, m_all = qxy[pairs[:, 0]], mxy[pairs[:, 1]]  # canvas px (map GSD), map px
@@ -384,17 +360,7 @@ def register(
         if len(pairs) < 6:
             continue
         qc, m = qxy[pairs[:, 0]], mxy[pairs[:, 1]]
-        rigid = c["model"] == "rigid"
-        if rigid:
-            Hc = rigid_ransac(qc, m, c["reproj_px"], c["max_angle_deg"])
-        elif c["model"] == "similarity":
-            cv2.setRNGSeed(int(seed) + k)
-            S = cv2.estimateAffinePartial2D(qc.astype(np.float32), m.astype(np.float32),
-                                            method=cv2.RANSAC, ransacReprojThreshold=c["reproj_px"],
-                                            maxIters=int(c["ransac_iters"]), confidence=0.999)[0]  # fmt: skip
-            Hc = None if S is None else np.vstack([S, [0, 0, 1.0]])
-        else:
-            raise ValueError(f"register.rift.model: {c['model']!r} (rigid | similarity)")
+        Hc = rigid_ransac(qc, m, c["reproj_px"], c["max_angle_deg"])
         if Hc is None:
             continue
         Ainv = np.linalg.inv(A)
@@ -409,7 +375,7 @@ def register(
         lnfa = float(dec.get("log10_nfa", math.inf))
         key = (bool(dec["accepted"]), -lnfa)
         if best["decision"] is None or key > (bool(best["accepted"]), -best["log10_nfa"]):
-            H = refit(Hc, qc_all, m_all, c["reproj_px"], not rigid) @ A
+            H = refit(Hc, qc_all, m_all, c["reproj_px"]) @ A
             best.update(accepted=bool(dec["accepted"]), H=H, log10_nfa=lnfa,
                         inliers=int(inl.sum()), matches=len(pairs), angle_deg=angle, decision=dec)  # fmt: skip
     best["lowest_log10_nfa"] = best["log10_nfa"]
@@ -454,7 +420,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]],
         A = A @ np.array([[1 / f, 0, 0.5 / f - 0.5], [0, 1 / f, 0.5 / f - 0.5], [0, 0, 1.0]])
     u8 = q.u8 if q.u8.ndim == 2 else q.u8[0]
     r = register(u8, m_u8.astype(np.uint8), float(q.gsd) / (m_px / f), conf.get("acceptance") or {},
-                 c, q.seed, gsd_m=float(q.gsd), map_gsd_m=m_px / f)  # fmt: skip
+                 c, gsd_m=float(q.gsd), map_gsd_m=m_px / f)  # fmt: skip
     H = None if r["H"] is None else A @ r["H"]
     rec = {"ran": True, "candidates": int(r["tests"]), "accepted": r["accepted"],
            "log10_nfa": r["log10_nfa"], "inliers": r["inliers"], "matches": r["matches"],
