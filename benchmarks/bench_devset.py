@@ -48,8 +48,11 @@ Methods: ``sift_plain`` (OpenCV SIFT, ratio 0.8, MAGSAC, > 5 inliers: the outsid
 ``wf_default`` (the workflow's registration stages, georeg.register.fuse.register_query with
 config/config.yaml's ``register`` section, as bench_crossspectral's ``wf_*`` methods). The
 hypothesis sources of issue 34 item 3 (``src_*``: CFOG structure, XFeat; commit cd6ab47) were
-measured here and not kept (docs/experiments/2026-11-26-devset.md). The record says which
-methods ran (``sources`` in the json).
+measured here and not kept (docs/experiments/2026-11-26-devset.md). ``src_rift``: the RIFT-style
+phase-congruency source alone (georeg.register.rift.register on the benchmark's arrays, the map's
+features built once per map); ``src_rift12``: the same with 12 rotations of 30 deg (measured, not
+kept); ``wf_rift``: the workflow with ``register.rift.enabled`` (docs/experiments/2026-11-26-rift.md).
+The record says which methods ran (``sources`` in the json).
 """
 
 from __future__ import annotations
