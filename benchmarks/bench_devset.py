@@ -48,8 +48,11 @@ Methods: ``sift_plain`` (OpenCV SIFT, ratio 0.8, MAGSAC, > 5 inliers: the outsid
 ``wf_default`` (the workflow's registration stages, georeg.register.fuse.register_query with
 config/config.yaml's ``register`` section, as bench_crossspectral's ``wf_*`` methods). The
 hypothesis sources of issue 34 item 3 (``src_*``: CFOG structure, XFeat; commit cd6ab47) were
-measured here and not kept (docs/experiments/2026-11-26-devset.md). The record says which
-methods ran (``sources`` in the json).
+measured here and not kept (docs/experiments/2026-11-26-devset.md). ``src_rift``: the RIFT-style
+phase-congruency source alone (georeg.register.rift.register on the benchmark's arrays, the map's
+features built once per map); ``src_rift12``: the same with 12 rotations of 30 deg (measured, not
+kept); ``wf_rift``: the workflow with ``register.rift.enabled`` (docs/experiments/2026-11-26-rift.md).
+The record says which methods ran (``sources`` in the json).
 """
 
 from __future__ import annotations
@@ -314,11 +317,47 @@ METHODS: dict[str, dict[str, Any]] = {
     # georeg/register/structure.py, XFeat: georeg/register/learned.py; verified by
     # georeg/register/candidate.verify): commit cd6ab47 has them, the figures are in
     # docs/experiments/2026-11-26-devset.md
+    # RIFT-style phase-congruency features (georeg/register/rift.py), verified by the acceptance
+    "src_rift": {"rift": {}},
+    "src_rift12": {"rift": {"rotations": 12, "max_angle_deg": 20.0}},  # v3: 30 deg steps
+    # the workflow with the rift source enabled (fuse.SOURCES: runs when nothing else accepted)
+    "wf_rift": {"pipeline": {"rift": {"enabled": True}}, "bands": 1},
 }
+_RIFT_MAPS: dict[tuple[str, str], Any] = {}  # (scene, conf) -> map features (built once)
+
+
+def run_rift(q: bx.Query, sc: bx.Scene, spec: dict[str, Any], seed: int) -> dict[str, Any]:
+    """georeg.register.rift.register of the query against the whole map (features of the map
+    built once per scene and conf: their CPU seconds are recorded as ``map_cpu_seconds`` on the
+    first query of that map, inside its ``cpu_seconds``)."""
+    from georeg.register import rift
+
+    t0 = time.perf_counter()
+    conf = rift.rift_conf(spec["rift"])
+    key = (sc.name, json.dumps(conf, sort_keys=True))
+    map_s = 0.0
+    if key not in _RIFT_MAPS:
+        c0 = time.process_time()
+        _RIFT_MAPS.clear()
+        _RIFT_MAPS[key] = rift.map_features(sc.map_gray, conf)
+        map_s = time.process_time() - c0
+    reg = bx.workflow_register_conf()
+    u8 = next(iter(q.bands.values()))
+    r = rift.register(u8, sc.map_gray, q.gsd / sc.map_gsd, reg["acceptance"], conf,
+                      _RIFT_MAPS[key], q.gsd, sc.map_gsd)  # fmt: skip
+    g = sc.map_gsd
+    H = None if r["H"] is None else np.diag([g, -g, 1.0]) @ r["H"]  # judged only if accepted
+    return {"matches": r["matches"], "inliers": r["inliers"], "accepted": r["accepted"], "H": H,
+            "log10_nfa": r["log10_nfa"], "tests": r["tests"], "candidates": r["tests"],
+            "angle_deg": r["angle_deg"], "map_cpu_seconds": map_s,
+            "seconds": time.perf_counter() - t0}  # fmt: skip
 
 
 def run(q: bx.Query, sc: bx.Scene, name: str, seed: int) -> dict[str, Any]:
-    return bx.run_method(q, sc, METHODS[name], seed)
+    spec = METHODS[name]
+    if "rift" in spec:
+        return run_rift(q, sc, spec, seed)
+    return bx.run_method(q, sc, spec, seed)
 
 
 def judge(q: bx.Query, sc: bx.Scene, res: dict[str, Any]) -> dict[str, Any]:

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from georeg.io.prior import prior_bounds, prior_record
-from georeg.register import lidar_check, matching, ortho_check, small
+from georeg.register import lidar_check, matching, ortho_check, rift, small
 from georeg.register.search import (
     MapSource,
     MapView,
@@ -241,6 +241,7 @@ SOURCES: tuple[tuple[str, Source], ...] = (
     ("whole_query", whole_query_source),
     ("small_windows", small.window_source),
     ("cfog_null", small.null_source),
+    ("rift", rift.source),
 )
 
 

@@ -1,0 +1,436 @@
+"""RIFT-style features for multimodal registration: phase congruency and the maximum index map.
+
+Li, Hu, Ai, "RIFT: Multi-modal image matching based on radiation-variation insensitive feature
+transform", IEEE TIP 29 (2020). A log-Gabor bank (frequency domain, one forward FFT per image, one
+inverse per filter) gives per scale / orientation amplitudes; Kovesi's phase congruency per
+orientation gives the maximum moment map (keypoints), the orientation of largest scale-summed
+amplitude gives the maximum index map (MIM); a keypoint's descriptor is the histogram of MIM
+values in each cell of a square patch around it. Rotation: the query is rotated over a fixed set
+of angles and every rotation is one more test in the a-contrario count of the project's acceptance
+(``georeg.register.acceptance.decide``), which scores the matches as independent keypoint
+correspondences.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import cv2
+import numpy as np
+import scipy.fft as sfft
+
+DEFAULTS: dict[str, Any] = {
+    "nscale": 4,  # log-Gabor scales (RIFT)
+    "norient": 6,  # orientations over 180 deg (RIFT)
+    "min_wavelength": 3.0,  # px, smallest scale
+    "mult": 1.6,  # wavelength ratio between scales
+    "sigma_onf": 0.75,  # radial bandwidth
+    "k": 1.0,  # noise threshold: mean + k sigma of the noise energy (RIFT)
+    "g": 3.0,  # sharpness of the frequency-spread weighting (RIFT)
+    "cut_off": 0.5,  # frequency spread below which phase congruency is down-weighted
+    "kp_per_mpx": 20000,  # keypoints per Mpx of valid image
+    "max_kp": 5000,
+    "grid": 8,  # spread: at most max_kp / grid^2 keypoints per grid cell
+    "patch": 72,  # descriptor patch side (px, at the map GSD)
+    "cells": 6,  # patch cells per side
+    "rotations": 36,  # query rotations over 360 deg (MIM histograms are sensitive to rotation)
+    "thin_px": 36.0,  # one match per query cell of this side (nearby patches overlap: dependent)
+    "max_angle_deg": 7.0,  # rigid: largest rotation left after the query's rotation step
+    "reproj_px": 3.0,  # RANSAC threshold (map px)
+    "nfa_cap_px": 6.0,  # residuals above this count as misses in the NFA (a pose certified to it)
+    "max_map_px": 16_000_000,  # larger maps are split into windows
+}
+
+
+def rift_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
+    """DEFAULTS updated by ``conf``; unknown keys are an error."""
+    conf = dict(conf or {})
+    bad = sorted(set(conf) - set(DEFAULTS) - {"enabled"})
+    if bad:
+        raise ValueError(f"register.rift: unknown key(s) {bad}; known: {sorted(DEFAULTS)}")
+    return {**DEFAULTS, **conf}
+
+
+def _filters(shape: tuple[int, int], c: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Radial log-Gabor filters (nscale, h, w) and angular spreads (norient, h, w)."""
+    h, w = shape
+    fy = sfft.fftfreq(h)[:, None]
+    fx = sfft.fftfreq(w)[None, :]
+    radius = np.sqrt(fx**2 + fy**2)
+    radius[0, 0] = 1.0
+    theta = np.arctan2(-fy, fx)
+    lp = 1.0 / (1.0 + (radius / 0.45) ** 30)  # Butterworth low-pass, order 15
+    radial = np.empty((c["nscale"], h, w), np.float32)
+    for s in range(c["nscale"]):
+        fo = 1.0 / (c["min_wavelength"] * c["mult"] ** s)
+        radial[s] = np.exp(-(np.log(radius / fo) ** 2) / (2 * math.log(c["sigma_onf"]) ** 2)) * lp
+        radial[s, 0, 0] = 0.0
+    no = c["norient"]
+    spread = np.empty((no, h, w), np.float32)
+    st, ct = np.sin(theta), np.cos(theta)
+    for o in range(no):
+        a = o * math.pi / no
+        ds = st * math.cos(a) - ct * math.sin(a)
+        dc = ct * math.cos(a) + st * math.sin(a)
+        dtheta = np.minimum(np.abs(np.arctan2(ds, dc)) * no / 2, math.pi)
+        spread[o] = (np.cos(dtheta) + 1) / 2
+    return radial, spread
+
+
+def phase_maps(img: np.ndarray, valid: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Phase congruency maximum moment map (h, w) and maximum index map (h, w, uint8 0..norient-1).
+
+    ``img`` float or uint8, ``valid`` bool: nodata is filled with the valid mean before the FFT
+    and the image is padded (mean) to an FFT-friendly size, so no edge appears at the border."""
+    c = rift_conf(conf)
+    h, w = img.shape
+    pad = int(2 * c["min_wavelength"] * c["mult"] ** (c["nscale"] - 1))
+    H, W = sfft.next_fast_len(h + 2 * pad), sfft.next_fast_len(w + 2 * pad)
+    x = np.asarray(img, np.float32)
+    mean = float(x[valid].mean()) if valid.any() else 0.0
+    canvas = np.full((H, W), mean, np.float32)
+    canvas[pad : pad + h, pad : pad + w] = np.where(valid, x, mean)
+    F = sfft.fft2(canvas, workers=1)
+    radial, spread = _filters((H, W), c)
+    eps = 1e-4
+    no, ns = c["norient"], c["nscale"]
+    cov = np.zeros((3, h, w), np.float32)  # sum cos^2, sum sin^2, sum cos sin of PC_o
+    best_amp = np.full((h, w), -1.0, np.float32)
+    mim = np.zeros((h, w), np.uint8)
+    for o in range(no):
+        sum_e = np.zeros((h, w), np.float32)
+        sum_o = np.zeros((h, w), np.float32)
+        sum_an = np.zeros((h, w), np.float32)
+        max_an = np.zeros((h, w), np.float32)
+        eo = []
+        tau = 0.0
+        for s in range(ns):
+            r = sfft.ifft2(F * (radial[s] * spread[o]), workers=1)[pad : pad + h, pad : pad + w]
+            re, im = r.real.astype(np.float32), r.imag.astype(np.float32)
+            an = np.hypot(re, im)
+            if s == 0:
+                tau = float(np.median(an[valid])) / math.sqrt(math.log(4)) if valid.any() else 0.0
+            sum_e += re
+            sum_o += im
+            sum_an += an
+            np.maximum(max_an, an, out=max_an)
+            eo.append((re, im))
+        x_energy = np.sqrt(sum_e**2 + sum_o**2) + eps
+        me, mo = sum_e / x_energy, sum_o / x_energy
+        energy = np.zeros((h, w), np.float32)
+        for re, im in eo:
+            energy += re * me + im * mo - np.abs(re * mo - im * me)
+        inv = 1.0 / c["mult"]
+        total_tau = tau * (1 - inv**ns) / (1 - inv)
+        t = (total_tau * math.sqrt(math.pi / 2) + c["k"] * total_tau * math.sqrt((4 - math.pi) / 2)) / 1.7
+        energy = np.maximum(energy - t, 0)
+        width = (sum_an / (max_an + eps) - 1) / (ns - 1)
+        weight = 1.0 / (1.0 + np.exp((c["cut_off"] - width) * c["g"]))
+        pc = weight * energy / (sum_an + eps)
+        a = o * math.pi / no
+        cx, cy = pc * math.cos(a), pc * math.sin(a)
+        cov[0] += cx * cx
+        cov[1] += cy * cy
+        cov[2] += cx * cy
+        better = sum_an > best_amp
+        mim[better] = o
+        best_amp = np.maximum(best_amp, sum_an)
+    cov /= no / 2
+    denom = np.sqrt(4 * cov[2] ** 2 + (cov[0] - cov[1]) ** 2) + eps
+    moment = (cov[0] + cov[1] + denom) / 2
+    return moment, mim
+
+
+def keypoints(moment: np.ndarray, valid: np.ndarray, conf: dict[str, Any]) -> np.ndarray:
+    """(n, 2) keypoints (col, row) on the maximum moment map, spread over a grid."""
+    c = rift_conf(conf)
+    n = int(min(c["max_kp"], max(50, valid.sum() * c["kp_per_mpx"] / 1e6)))
+    inner = cv2.erode(valid.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+    hi = float(np.percentile(moment[inner], 99.5)) if inner.any() else 1.0
+    m8 = np.clip(moment / max(hi, 1e-9) * 255, 0, 255).astype(np.uint8)
+    m8[~inner] = 0
+    kps = cv2.FastFeatureDetector_create(threshold=5, nonmaxSuppression=True).detect(m8)
+    if not kps:
+        return np.zeros((0, 2))
+    xy = np.array([k.pt for k in kps], np.float64)
+    resp = np.array([k.response for k in kps], np.float64)
+    h, w = moment.shape
+    g = int(c["grid"])
+    cell = (np.minimum(xy[:, 1] * g // h, g - 1) * g + np.minimum(xy[:, 0] * g // w, g - 1)).astype(int)
+    order = np.lexsort((-resp, cell))  # by cell, strongest first
+    rank = np.arange(len(order)) - np.searchsorted(cell[order], cell[order])
+    per_cell = max(1, int(math.ceil(n / g**2)))
+    keep = order[rank < per_cell]
+    keep = keep[np.argsort(-resp[keep])][:n]
+    return xy[keep]
+
+
+def descriptors(mim: np.ndarray, valid: np.ndarray, xy: np.ndarray, conf: dict[str, Any]) -> np.ndarray:
+    """(n, cells^2 norient) L2-normalised histograms of MIM values in the patch cells."""
+    c = rift_conf(conf)
+    no, nc, patch = c["norient"], int(c["cells"]), int(c["patch"])
+    h, w = mim.shape
+    onehot = (mim[..., None] == np.arange(no, dtype=np.uint8)) & valid[..., None]
+    integ = np.zeros((h + 1, w + 1, no), np.float32)
+    integ[1:, 1:] = onehot.cumsum(0, dtype=np.float32).cumsum(1, dtype=np.float32)
+    edges = np.round(np.linspace(-patch / 2, patch / 2, nc + 1)).astype(int)
+    x0 = np.round(xy[:, 0]).astype(int)[:, None] + edges[None, :]  # (n, nc+1)
+    y0 = np.round(xy[:, 1]).astype(int)[:, None] + edges[None, :]
+    xc, yc = np.clip(x0, 0, w), np.clip(y0, 0, h)
+    ya, yb = yc[:, :-1, None], yc[:, 1:, None]  # (n, nc, 1) rows of cells
+    xa, xb = xc[:, None, :-1], xc[:, None, 1:]  # (n, 1, nc)
+    d = integ[yb, xb] - integ[ya, xb] - integ[yb, xa] + integ[ya, xa]  # (n, nc, nc, no)
+    d = d.reshape(len(xy), -1)
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+
+
+def features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Keypoints (n, 2: col, row) and descriptors of a uint8 image (0 = nodata)."""
+    valid = u8 > 0
+    moment, mim = phase_maps(u8, valid, conf)
+    xy = keypoints(moment, valid, conf)
+    return xy, descriptors(mim, valid, xy, conf).astype(np.float32)
+
+
+def map_features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """``features`` of a map, by overlapping windows when it has more than ``max_map_px`` pixels
+    (memory bounded by the window; keypoints kept in the window's core only)."""
+    c = rift_conf(conf)
+    h, w = u8.shape
+    if h * w <= c["max_map_px"]:
+        return features(u8, c)
+    side = int(math.sqrt(c["max_map_px"]))
+    m = int(c["patch"])
+    xys, ds = [], []
+    for r0 in range(0, h, side):
+        for c0 in range(0, w, side):
+            ra, ca = max(0, r0 - m), max(0, c0 - m)
+            win = u8[ra : min(h, r0 + side + m), ca : min(w, c0 + side + m)]
+            if not win.any():
+                continue
+            xy, d = features(win, c)
+            xy = xy + (ca, ra)
+            core = (xy[:, 0] >= c0) & (xy[:, 0] < c0 + side) & (xy[:, 1] >= r0) & (xy[:, 1] < r0 + side)
+            xys.append(xy[core])
+            ds.append(d[core])
+    if not xys:
+        return np.zeros((0, 2)), np.zeros((0, c["cells"] ** 2 * c["norient"]), np.float32)
+    return np.vstack(xys), np.vstack(ds)
+
+
+def match(dq: np.ndarray, dm: np.ndarray, chunk: int = 4096) -> np.ndarray:
+    """(k, 2) index pairs (query, map) of mutual nearest neighbours (largest dot product of unit
+    vectors = smallest L2), by chunks of the query."""
+    if len(dq) == 0 or len(dm) < 2:
+        return np.zeros((0, 2), int)
+    nn = np.empty(len(dq), int)
+    best_q = np.full(len(dm), -np.inf, np.float32)
+    arg_q = np.zeros(len(dm), int)
+    for a in range(0, len(dq), chunk):
+        s = dq[a : a + chunk] @ dm.T
+        nn[a : a + chunk] = np.argmax(s, axis=1)
+        col = s.max(axis=0)
+        better = col > best_q
+        arg_q[better] = a + np.argmax(s[:, better], axis=0)
+        best_q = np.maximum(best_q, col)
+    qi = np.arange(len(dq))
+    ok = arg_q[nn] == qi
+    return np.c_[qi[ok], nn[ok]]
+
+
+def thin(pairs: np.ndarray, qxy: np.ndarray, qd: np.ndarray, md: np.ndarray,
+         cell_px: float) -> np.ndarray:
+    """At most one match (the most similar) per query cell of ``cell_px``: the descriptors of
+    nearby keypoints share most of their patch, so their matches are not independent tests."""
+    if cell_px <= 0 or len(pairs) == 0:
+        return pairs
+    sim = np.einsum("ij,ij->i", qd[pairs[:, 0]], md[pairs[:, 1]])
+    cell = np.floor(qxy[pairs[:, 0]] / cell_px).astype(np.int64)
+    key = cell[:, 0] * 1_000_003 + cell[:, 1]
+    order = np.lexsort((-sim, key))
+    first = np.r_[True, key[order][1:] != key[order][:-1]]
+    return pairs[np.sort(order[first])]
+
+
+def similarity_lsq(q: np.ndarray, m: np.ndarray, with_scale: bool = True) -> np.ndarray:
+    """Least-squares similarity (or rigid: scale 1) q -> m (Umeyama, no reflection), 3 x 3."""
+    mq, mm = q.mean(0), m.mean(0)
+    a, b = q - mq, m - mm
+    U, S, Vt = np.linalg.svd(b.T @ a / len(q))
+    d = np.sign(np.linalg.det(U @ Vt))
+    D = np.diag([1.0, d])
+    R = U @ D @ Vt
+    s = float(np.trace(np.diag(S) @ D) / max((a**2).sum() / len(q), 1e-12)) if with_scale else 1.0
+    H = np.eye(3)
+    H[:2, :2] = s * R
+    H[:2, 2] = mm - s * R @ mq
+    return H
+
+
+def refit(H: np.ndarray, q: np.ndarray, m: np.ndarray, tol_px: float, rounds: int = 3) -> np.ndarray:
+    """Least-squares rigid fit on every (unthinned) match within ``tol_px`` of H, iterated; the
+    decision was made on the thinned matches, this only sharpens the pose."""
+    for _ in range(rounds):
+        res = np.linalg.norm((np.c_[q, np.ones(len(q))] @ H.T)[:, :2] - m, axis=1)
+        sel = res <= tol_px
+        if sel.sum() < 3:
+            break
+        H = similarity_lsq(q[sel], m[sel], with_scale=False)
+    return H
+
+
+def rigid_ransac(q: np.ndarray, m: np.ndarray, tol_px: float, max_angle_deg: float) -> np.ndarray | None:
+    """Exhaustive 2-point search for a rotation + translation q -> m (scale 1, rotation within
+    ``max_angle_deg``): every pair of matches is a hypothesis; the one with most matches within
+    ``tol_px`` (then the smallest sum of their residuals) wins. Deterministic, vectorised."""
+    n = len(q)
+    i, j = np.triu_indices(n, 1)
+    dq, dm = q[j] - q[i], m[j] - m[i]
+    lq, lm = np.linalg.norm(dq, axis=1), np.linalg.norm(dm, axis=1)
+    ang = np.arctan2(dq[:, 0] * dm[:, 1] - dq[:, 1] * dm[:, 0], (dq * dm).sum(1))
+    ok = (lq > 4 * tol_px) & (np.abs(lm / np.maximum(lq, 1e-9) - 1) < 0.2)
+    ok &= np.abs(ang) <= math.radians(max_angle_deg)
+    if not ok.any():
+        return None
+    i, j, ang = i[ok], j[ok], ang[ok]
+    cs, sn = np.cos(ang), np.sin(ang)
+    cq, cm = (q[i] + q[j]) / 2, (m[i] + m[j]) / 2
+    tx = cm[:, 0] - (cs * cq[:, 0] - sn * cq[:, 1])
+    ty = cm[:, 1] - (sn * cq[:, 0] + cs * cq[:, 1])
+    px = cs[:, None] * q[None, :, 0] - sn[:, None] * q[None, :, 1] + tx[:, None]
+    py = sn[:, None] * q[None, :, 0] + cs[:, None] * q[None, :, 1] + ty[:, None]
+    res = np.hypot(px - m[None, :, 0], py - m[None, :, 1])
+    inl = res <= tol_px
+    score = inl.sum(1) - np.where(inl, res, 0).sum(1) / (tol_px * n + 1)
+    b = int(np.argmax(score))
+    return np.array([[cs[b], -sn[b], tx[b]], [sn[b], cs[b], ty[b]], [0, 0, 1.0]])
+
+
+def _rotated(u8: np.ndarray, f: float, angle: float) -> tuple[np.ndarray, np.ndarray]:
+    """The query scaled by ``f`` and rotated by ``angle`` deg on a canvas holding it whole, and
+    the 3 x 3 query px -> canvas px (pixel centres)."""
+    h, w = u8.shape
+    hs, ws = h * f, w * f
+    D = int(math.ceil(math.hypot(hs, ws))) + 2
+    S = np.array([[f, 0, 0.5 * f - 0.5], [0, f, 0.5 * f - 0.5], [0, 0, 1.0]])
+    R = np.vstack([cv2.getRotationMatrix2D(((ws - 1) / 2, (hs - 1) / 2), float(angle), 1.0), [0, 0, 1]])
+    R[:2, 2] += ((D - 1) / 2 - (ws - 1) / 2, (D - 1) / 2 - (hs - 1) / 2)
+    A = R @ S
+    interp = cv2.INTER_AREA if f < 1 else cv2.INTER_LINEAR
+    img = cv2.warpAffine(u8, A[:2], (D, D), flags=interp, borderValue=0)
+    valid = cv2.warpAffine((u8 > 0).astype(np.uint8), A[:2], (D, D), flags=cv2.INTER_NEAREST) > 0
+    return np.where(valid, np.maximum(img, 1), 0).astype(np.uint8), A
+
+
+def register(
+    query_u8: np.ndarray,
+    map_u8: np.ndarray,
+    scale: float,
+    acc_conf: dict[str, Any],
+    conf: dict[str, Any] | None = None,
+    map_feats: tuple[np.ndarray, np.ndarray] | None = None,
+    gsd_m: float | None = None,
+    map_gsd_m: float = 1.0,
+) -> dict[str, Any]:
+    """The query (uint8, 0 = nodata) against the map (uint8, 0 = nodata): ``scale`` = map px per
+    query px (the known GSD ratio). Every rotation's mutual matches, thinned -> rigid fit (``rigid_ransac``) ->
+    ``acceptance.decide`` (residuals of all matches in map px, area = the map's valid pixels,
+    tests = the rotations). Returns ``accepted``, ``H`` (query px -> map px), ``log10_nfa``,
+    ``inliers``, ``matches``, ``tests``, ``angle_deg``, ``lowest_log10_nfa`` and ``decision``."""
+    from georeg.register import acceptance
+
+    c = rift_conf(conf)
+    mxy, md = map_feats if map_feats is not None else map_features(map_u8, c)
+    area = float((map_u8 > 0).sum())
+    n_rot = int(c["rotations"])
+    h, w = query_u8.shape
+    to_m = np.diag([map_gsd_m, -map_gsd_m, 1.0])  # map px -> north-up map units (handedness)
+    best: dict[str, Any] = {"accepted": False, "H": None, "log10_nfa": math.inf, "inliers": 0,
+                            "matches": 0, "tests": n_rot, "angle_deg": None, "decision": None}  # fmt: skip
+    for k in range(n_rot):
+        angle = 360.0 * k / n_rot
+        img, A = _rotated(query_u8, scale, angle)
+        qxy, qd = features(img, c)
+        pairs = match(qd, md)
+        if len(pairs) < 6:
+            continue
+        qc_all, m_all = qxy[pairs[:, 0]], mxy[pairs[:, 1]]  # canvas px (map GSD), map px
+        pairs = thin(pairs, qxy, qd, md, float(c["thin_px"]))
+        if len(pairs) < 6:
+            continue
+        qc, m = qxy[pairs[:, 0]], mxy[pairs[:, 1]]
+        Hc = rigid_ransac(qc, m, c["reproj_px"], c["max_angle_deg"])
+        if Hc is None:
+            continue
+        Ainv = np.linalg.inv(A)
+        q = (np.c_[qc, np.ones(len(qc))] @ Ainv.T)[:, :2]  # query px
+        H = Hc @ A
+        res = np.linalg.norm((np.c_[q, np.ones(len(q))] @ H.T)[:, :2] - m, axis=1)
+        inl = res <= c["reproj_px"]
+        capped = np.where(res <= c["nfa_cap_px"], res, 1e9)  # a miss: p = 1, n unchanged
+        dec = acceptance.decide(to_m @ H, capped, int(inl.sum()), area, w, h,
+                                gsd_m if gsd_m is not None else scale * map_gsd_m, acc_conf,
+                                n_candidates=n_rot, inlier_q_xy=q[inl])  # fmt: skip
+        lnfa = float(dec.get("log10_nfa", math.inf))
+        key = (bool(dec["accepted"]), -lnfa)
+        if best["decision"] is None or key > (bool(best["accepted"]), -best["log10_nfa"]):
+            H = refit(Hc, qc_all, m_all, c["reproj_px"]) @ A
+            best.update(accepted=bool(dec["accepted"]), H=H, log10_nfa=lnfa,
+                        inliers=int(inl.sum()), matches=len(pairs), angle_deg=angle, decision=dec)  # fmt: skip
+    best["lowest_log10_nfa"] = best["log10_nfa"]
+    return best
+
+
+def source(q: Any, view: Any, parts: list[dict[str, Any]],
+           conf: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, Any]]:  # fmt: skip
+    """Source ``rift`` (``register.rift``; ``georeg.register.fuse.SOURCES``): the query's primary
+    band against the whole orthophoto (read once through ``view.read_window``, shrunk to the
+    query's GSD when finer), ``register``; an accepted pose becomes one more (whole-query) part.
+    Not run without the query's GSD, without an orthophoto, or above ``max_map_px`` map pixels
+    (the whole map is read: memory ~60 bytes per map pixel). Returns the parts and the record."""
+    import time
+
+    from georeg.register.dense import window_u8
+
+    rc = dict(conf.get("rift") or {})
+    if not rc.pop("enabled", False):
+        return parts, {"ran": False, "reason": "disabled"}
+    c = rift_conf(rc)
+    why = ("the query's GSD is unknown" if q.gsd is None else
+           "no orthophoto" if view.read_window is None else "")  # fmt: skip
+    b = view.source.bounds
+    g = max(float(view.source.gsd_m), float(q.gsd or 0.0))
+    if not why and (b[2] - b[0]) * (b[3] - b[1]) / g**2 > c["max_map_px"]:
+        why = f"map larger than max_map_px ({c['max_map_px']:.0f}) at the query's GSD"
+    if why:
+        return parts, {"ran": False, "reason": why}
+    t0 = time.perf_counter()
+    got = view.read_window(tuple(b))
+    if got is None:
+        return parts, {"ran": False, "reason": "orthophoto window unreadable"}
+    gray, A = got
+    m_px = float(np.sqrt(abs(np.linalg.det(A[:2, :2]))))
+    f = min(1.0, m_px / float(q.gsd))  # the map shrunk to the query's GSD when finer
+    m_u8 = window_u8(gray)
+    if f < 1.0:
+        size = (max(1, round(m_u8.shape[1] * f)), max(1, round(m_u8.shape[0] * f)))
+        ok = cv2.resize((m_u8 > 0).astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
+        m_u8 = np.where(ok > 0, np.maximum(cv2.resize(m_u8, size, interpolation=cv2.INTER_AREA), 1), 0)
+        A = A @ np.array([[1 / f, 0, 0.5 / f - 0.5], [0, 1 / f, 0.5 / f - 0.5], [0, 0, 1.0]])
+    u8 = q.u8 if q.u8.ndim == 2 else q.u8[0]
+    r = register(u8, m_u8.astype(np.uint8), float(q.gsd) / (m_px / f), conf.get("acceptance") or {},
+                 c, gsd_m=float(q.gsd), map_gsd_m=m_px / f)  # fmt: skip
+    H = None if r["H"] is None else A @ r["H"]
+    rec = {"ran": True, "candidates": int(r["tests"]), "accepted": r["accepted"],
+           "log10_nfa": r["log10_nfa"], "inliers": r["inliers"], "matches": r["matches"],
+           "angle_deg": r["angle_deg"], "map_px": int(m_u8.size),
+           "reason": "" if r["decision"] is None else r["decision"].get("reason", ""),
+           "seconds": time.perf_counter() - t0}  # fmt: skip
+    if r["accepted"] and H is not None:
+        part = {"accepted": True, "homography": H.tolist(), "log10_nfa": r["log10_nfa"],
+                "inliers": r["inliers"], "matches": r["matches"], "residual_px": None,
+                "method": "rift", "part": len(parts), "rows": [0, u8.shape[0]], "whole_query": True,
+                "candidates_tried": int(r["tests"]), "candidates": []}  # fmt: skip
+        parts = [*parts, part]
+    return parts, rec
