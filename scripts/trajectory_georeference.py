@@ -2,22 +2,16 @@
 
 from pathlib import Path
 
-from georeg.frames.localize import MapSources
+from georeg.frames.localize import open_map_sources
 from georeg.io.scripting import run
 from georeg.trajectory.pipeline import georeference_video
 
 
 def main(smk):
     fl = dict(smk.params.frame_loc)
-    maps = MapSources(Path(smk.input.index).parent, smk.input.ortho,
-                      smk.input.dsm[0] if smk.input.dsm else None, list(smk.input.laz),
-                      dense_coarse=bool(fl.get("dense_coarse", True)),
-                      ground_z=float(smk.params.ground_z))  # fmt: skip
-    if smk.input.feature_maps:  # earlier sets' feature maps: the anchors try them first
-        from georeg.frames.feature_map import load_feature_maps
-
-        maps.feature_map = load_feature_maps(list(smk.input.feature_maps), maps.crs_wkt, maps.bounds(),
-                                             fl.get("feature_map"))  # fmt: skip
+    maps = open_map_sources(Path(smk.input.index).parent, smk.input.ortho,
+                            smk.input.dsm[0] if smk.input.dsm else None, list(smk.input.laz), fl,
+                            float(smk.params.ground_z), list(smk.input.feature_maps))  # fmt: skip
     georeference_video(
         dict(smk.params.frames),
         maps,

@@ -691,6 +691,21 @@ def evaluate(rec: dict, truth: dict) -> dict:
     return out
 
 
+def open_map_sources(index_dir, ortho_vrt, dsm_vrt, laz_paths, conf: dict, ground_z: float = 0.0,
+                     feature_maps: list | None = None) -> MapSources:  # fmt: skip
+    """The map of a frame set, video or collection (``conf`` = ``frame_loc``), with earlier sets'
+    feature maps (sfm_points.laz, tried first: ``georeg.frames.feature_map``) when given."""
+    maps = MapSources(index_dir, ortho_vrt, dsm_vrt, laz_paths,
+                      dense_coarse=bool(conf.get("dense_coarse", DEFAULTS["dense_coarse"])),
+                      ground_z=ground_z)  # fmt: skip
+    if feature_maps:
+        from georeg.frames.feature_map import load_feature_maps
+
+        maps.feature_map = load_feature_maps(list(feature_maps), maps.crs_wkt, maps.bounds(),
+                                             conf.get("feature_map"))  # fmt: skip
+    return maps
+
+
 def set_prior(maps: MapSources, prior: Any, set_name: str = "<set>") -> dict | None:
     """The set's location prior as a box in the map CRS on ``maps`` (the index coarse search keeps
     to it); what poses.json records of it (None without a prior). A bad prior: ``InputError``."""
@@ -715,18 +730,7 @@ def localize_set(images: Any, camera: dict | None, index_dir, ortho_vrt, dsm_vrt
         raise InputError(None, f"the frame list {images!r} matches no file", "check frames.<set>.images")
     for p in paths:  # every frame readable and large enough before anything is written
         check_frame(p)
-    maps = MapSources(
-        index_dir,
-        ortho_vrt,
-        dsm_vrt,
-        laz_paths,
-        dense_coarse=bool(conf.get("dense_coarse", DEFAULTS["dense_coarse"])),
-        ground_z=ground_z,
-    )
-    if feature_maps:
-        from georeg.frames.feature_map import load_feature_maps
-
-        maps.feature_map = load_feature_maps(feature_maps, maps.crs_wkt, maps.bounds(), conf.get("feature_map"))
+    maps = open_map_sources(index_dir, ortho_vrt, dsm_vrt, laz_paths, conf, ground_z, feature_maps)
     prior_rec = set_prior(maps, prior, set_name)
     truth = {}
     if truth_path:
