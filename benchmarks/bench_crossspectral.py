@@ -502,6 +502,31 @@ def plain_window_reader(sc: Scene) -> Any:
     return read
 
 
+def plain_level_reader(sc: Scene) -> Any:
+    """The map array as a ``georeg.register.level.LevelReader``: bounds (x = col g, y = -row g)
+    -> (gray averaged to ``gsd``, 0 = nodata; level pixel centre -> map x, y)."""
+    g = sc.map_gsd
+    h, w = sc.map_gray.shape
+
+    def read(b: tuple[float, ...], gsd: float) -> tuple[np.ndarray, np.ndarray] | None:
+        c0, c1 = max(0, int(math.floor(b[0] / g))), min(w, int(math.ceil(b[2] / g)) + 1)
+        r0, r1 = max(0, int(math.floor(-b[3] / g))), min(h, int(math.ceil(-b[1] / g)) + 1)
+        f = g / gsd
+        ow, oh = max(1, round((c1 - c0) * f)), max(1, round((r1 - r0) * f))
+        if ow < 8 or oh < 8:
+            return None
+        win = sc.map_gray[r0:r1, c0:c1]
+        valid = cv2.resize((win > 0).astype(np.float32), (ow, oh), interpolation=cv2.INTER_AREA)
+        img = cv2.resize(win.astype(np.float32), (ow, oh), interpolation=cv2.INTER_AREA)
+        gray = np.where(valid > 0.99, np.clip(img / np.maximum(valid, 1e-6), 1, 255), 0)
+        sx, sy = (c1 - c0) * g / ow, (r1 - r0) * g / oh
+        A = np.array([[sx, 0, (c0 - 0.5) * g + 0.5 * sx], [0, -sy, -(r0 - 0.5) * g - 0.5 * sy],
+                      [0, 0, 1.0]])  # fmt: skip
+        return gray.round().astype(np.uint8), A
+
+    return read
+
+
 def location_prior(q: Query, sc_map: Scene, factor: float, seed: int) -> dict[str, Any]:
     """A prior ``{"centre", "radius_m"}`` in this benchmark's map units (x = col g, y = -row g):
     radius = ``factor`` x the query's ground side, centred on the true centre moved by a seeded
@@ -532,7 +557,7 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
     u8 = query_stack(q, spec.get("bands", 1))
     prior = None if not spec.get("prior") else location_prior(q, sc_map, float(spec["prior"]), seed)
     res = register_query(u8, src, conf, q.gsd, [q.gsd / fgsd], seed, plain_window_reader(sc_map),
-                         prior)  # fmt: skip
+                         prior, plain_level_reader(sc_map))  # fmt: skip
     split = res.get("split") or {}
     wins = (split.get("small") or {}).get("windows") or []
     sw = [w.get("log10_nfa") for w in wins if w.get("log10_nfa") is not None]
@@ -555,6 +580,7 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
         "log10_nfa": res.get("log10_nfa"),
         "H": None if res.get("homography") is None else np.array(res["homography"]),
         "parts": split.get("parts"),
+        "level": res.get("level"),
         "whole": split.get("whole_query_searched"),
         "features": split.get("query_features"),
         "part_side": split.get("part_side_map_px"),

@@ -14,6 +14,7 @@ def main(smk):
         dict(smk.params.register),
         int(smk.params.seed),
         smk.output[0],
+        smk.input.ortho,
     )
 
 

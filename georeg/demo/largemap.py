@@ -474,6 +474,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--lidar-density", type=float, default=0.5, help="pulses per m2")
     p.add_argument("--lidar-crs", default=f"EPSG:{MAP_EPSG}")
     p.add_argument("--query-bands", type=int, default=24)
+    p.add_argument("--query-gsd-m", type=float, default=LargeMapSpec.query_gsd_m)
+    p.add_argument("--query-samples", type=int, default=LargeMapSpec.query_samples)
+    p.add_argument("--query-lines", type=int, default=LargeMapSpec.query_lines)
     p.add_argument("--no-query", action="store_true")
     p.add_argument("--workers", type=int, default=1, help="chunks rendered in parallel")
     a = p.parse_args(argv)
@@ -482,7 +485,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     spec = LargeMapSpec(size_m=a.size_m, gsd_m=a.gsd_m, seed=a.seed, chunk_px=a.chunk_px,
                         lidar_density=a.lidar_density, lidar_crs=a.lidar_crs,
-                        query_bands=a.query_bands)  # fmt: skip
+                        query_bands=a.query_bands, query_gsd_m=a.query_gsd_m,
+                        query_samples=a.query_samples, query_lines=a.query_lines)  # fmt: skip
     m = generate_large_map(a.out, spec, workers=max(1, a.workers), query=not a.no_query)
     print(json.dumps({k: m[k] for k in ("width", "height", "megapixels", "seconds")}))
     print(os.path.join(a.out, "map.yaml"))

@@ -21,14 +21,14 @@ from typing import Any
 import numpy as np
 
 from georeg.io.prior import prior_bounds, prior_record
-from georeg.register import lidar_check, matching, ortho_check, rift, small
+from georeg.register import level, lidar_check, matching, ortho_check, rift, small
 from georeg.register.search import (
     MapSource,
     MapView,
     QueryFeatures,
     QueryInput,
-    clip_to_prior,
     index_rank,
+    map_for_query,
     query_features,
     search_count,
     search_one_part,
@@ -321,23 +321,26 @@ def register_query(
     seed: int = 0,
     read_window: Any = None,
     prior: Any = None,
+    read_level: Any = None,
 ) -> dict[str, Any]:
     """The workflow's search_part jobs and fuse_parts in one process (the library's entry point):
     split plan, every part, the other sources (the small-query ones when ``read_window`` is
     given), fusion and the verifier's terms (``decide``). ``prior``: an approximate location
     (``georeg.io.prior``: ``{"centre": [x, y], "radius_m": r}`` or ``{"box": [x0, y0, x1,
     y1]}``, ``"crs": "map"`` (default) or ``"lonlat"``; or map bounds): the map the sources see
-    is clipped to it. Returns the fused result with ``split``, ``parts``, ``sources``, the
-    terms' records and ``prior``."""
+    is clipped to it. ``read_level``: the orthophoto as a ``georeg.register.level.LevelReader``
+    (a query much coarser than the map searches a level near its GSD). Returns the fused result
+    with ``split``, ``parts``, ``sources``, the terms' records, ``prior`` and ``level``."""
     bounds = prior_bounds(prior, source.crs_wkt)
     h, w = u8.shape[-2:]
-    view = MapView(clip_to_prior(source, bounds, w, h, gsd_m, factors), read_window)
-    full = query_features(u8, (0, h), factors, source.features_conf)
+    src, factors, lrec = map_for_query(source, bounds, w, h, gsd_m, factors, conf, read_level)
+    view = MapView(src, read_window)
+    full = query_features(u8, (0, h), factors, view.source.features_conf)
     n = int(conf.get("parts", 2))
     parts = [search_one_part(u8, k, view.source, conf, gsd_m, factors, seed, full)
              for k in range(n)]  # fmt: skip
     fused, rec = decide(QueryInput(u8, full, gsd_m, factors, seed), view, parts, conf)
-    return {**fused, **rec, "prior": prior_record(prior, bounds)}
+    return {**fused, **rec, "prior": prior_record(prior, bounds), "level": lrec}
 
 
 def run_fuse_parts(
@@ -381,9 +384,10 @@ def run_fuse_parts(
     }
     t1 = time.perf_counter()
     factors = feature_scales(gsd, source.gsd_m, reg_conf.get("unknown_gsd_factors", [1.0]))
-    view = MapView(clip_to_prior(source, bounds, w, h, gsd, factors),
-                   None if not ortho else ortho_window_reader(ortho))  # fmt: skip
-    full = query_features(u8, (0, h), factors, source.features_conf)
+    reader = None if not ortho else level.read_ortho_level(ortho)
+    src, factors, lrec = map_for_query(source, bounds, w, h, gsd, factors, reg_conf, reader)
+    view = MapView(src, None if not ortho else ortho_window_reader(ortho))
+    full = query_features(u8, (0, h), factors, view.source.features_conf)
     timings["fuse_features"] = time.perf_counter() - t1
     fused, rec = decide(QueryInput(u8, full, gsd, factors, seed), view, parts, reg_conf, dsm)
     source = view.source
@@ -418,6 +422,7 @@ def run_fuse_parts(
         "feature_gsd_m": source.gsd_m,
         "candidates_tried": int(sum(p.get("candidates_tried", 0) for p in parts)),
         "prior": prior_record(meta.get("prior"), bounds),
+        "level": lrec,
         "sources": rec["sources"],
         "split": rec["split"],
         "parts": [

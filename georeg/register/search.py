@@ -17,7 +17,7 @@ import numpy as np
 
 from georeg.index.features import dequantize, detect_and_describe, resample
 from georeg.io.prior import prior_bounds, prior_record
-from georeg.register import acceptance, matching, model_choice
+from georeg.register import acceptance, level, matching, model_choice
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +39,7 @@ class MapSource:
     angle: np.ndarray | None = None  # (n,) keypoint orientation (degrees), plain arrays only
     scale: np.ndarray | None = None  # (n,) keypoint diameter in map units, plain arrays only
     clip: Bounds | None = None  # a location prior: only the map inside these bounds is seen
+    settings: dict[str, Any] | None = None  # features conf of plain arrays (an index has its own)
     _nn: Any = field(default=None, init=False, repr=False, compare=False)  # PlainNearest cache
 
     @classmethod
@@ -53,7 +54,7 @@ class MapSource:
     @property
     def features_conf(self) -> dict[str, Any] | None:
         """The feature settings the map was built with (the query must use the same)."""
-        return None if self.index is None else self.index.meta.get("features_conf")
+        return self.settings if self.index is None else self.index.meta.get("features_conf")
 
     def clipped(self, bounds: Bounds) -> MapSource:
         """The same map seen only inside ``bounds`` (a location prior); shares every array."""
@@ -123,6 +124,38 @@ def clip_to_prior(
     g = float(gsd_m) if gsd_m else source.gsd_m * max(factors)
     r = 0.5 * math.hypot(width, height) * g
     return source.clipped((prior[0] - r, prior[1] - r, prior[2] + r, prior[3] + r))
+
+
+def map_for_query(
+    source: MapSource,
+    prior: Bounds | None,
+    width: int,
+    height: int,
+    gsd_m: float | None,
+    factors: list[float],
+    conf: dict[str, Any],
+    read_level: level.LevelReader | None = None,
+) -> tuple[MapSource, list[float], dict[str, Any] | None]:
+    """The map a query searches and the query's resize factors: the map clipped to the
+    location prior (``clip_to_prior``), and, when the query is much coarser than the map's
+    features (``register.level``), that map's orthophoto averaged to the query's GSD and its
+    features (``georeg.register.level``) with the query at factor 1. Returns (source, factors,
+    the level's record or None when no level was asked for)."""
+    source = clip_to_prior(source, prior, width, height, gsd_m, factors)
+    lconf = {**level.DEFAULTS, **(conf.get("level") or {})}
+    g = level.level_gsd(gsd_m, source.gsd_m, lconf)
+    if g is None:
+        return source, factors, None
+    if read_level is None:
+        return source, factors, {"gsd": g, "reason": "no orthophoto to read the level from"}
+    feats, rec = level.level_features(read_level, source.bounds, g, source.features_conf,
+                                      float(lconf["max_mpx"]))  # fmt: skip
+    if feats is None:
+        log.warning("map level not used: %s", rec.get("reason"))
+        return source, factors, rec
+    out = MapSource(feats["xy"], feats["desc"], g, source.crs_wkt, angle=feats["angle"],
+                    scale=feats["scale"], clip=source.clip, settings=source.features_conf)  # fmt: skip
+    return out, [float(gsd_m) / g], rec
 
 
 class PlainNearest:
@@ -766,9 +799,11 @@ def run_search_part(
     reg_conf: dict[str, Any],
     seed: int,
     out_json: str,
+    ortho: str | None = None,
 ) -> dict[str, Any]:
     """Rule search_part: features of one along-track part (pooled over band.tif's bands), then
-    the configured search."""
+    the configured search. ``ortho``: the orthophoto mosaic, read when the query needs a map
+    level near its GSD (``map_for_query``)."""
     import json
 
     from georeg.io.atomic import write_json
@@ -782,10 +817,14 @@ def run_search_part(
     gsd = gsd_in_map_units(meta.get("gsd_m"), source.crs_wkt)
     factors = feature_scales(gsd, source.gsd_m, reg_conf.get("unknown_gsd_factors", [1.0]))
     prior = prior_bounds(meta.get("prior"), source.crs_wkt, band_json)
-    source = clip_to_prior(source, prior, u8.shape[-1], u8.shape[-2], gsd, factors)
+    reader = None if not ortho else level.read_ortho_level(ortho)
+    source, factors, lrec = map_for_query(source, prior, u8.shape[-1], u8.shape[-2], gsd, factors,
+                                          reg_conf, reader)  # fmt: skip
     t1 = time.perf_counter()
     res = search_one_part(u8, part, source, reg_conf, gsd, factors, seed)
     res["prior"] = prior_record(meta.get("prior"), prior)
+    if lrec is not None:
+        res["level"] = lrec
     res["timings_s"] = {"load": t_load, "features_and_search": time.perf_counter() - t1}
     res["seconds"] = time.perf_counter() - t0
     write_json(out_json, res)

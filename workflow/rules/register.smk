@@ -35,6 +35,7 @@ rule search_part:
         meta="results/queries/{name}/band.json",
         index=REG_INDEX_META,
         grid=REG_GRID,
+        ortho="results/map/mosaic/ortho.vrt",
     output:
         "results/queries/{name}/parts/part_{part}.json",
     params:

@@ -1,0 +1,227 @@
+"""Large scale gaps (issue 34 item 5): a query about 8x coarser than the map.
+
+    . /work/main/.venv/bin/activate
+    nice -n 5 python benchmarks/bench_scale_gap.py --methods sift_plain,wf_default,wf_levels \\
+        --out benchmarks/out/scale_gap.json -v
+    python benchmarks/bench_scale_gap.py --table benchmarks/out/scale_gap.jsonl
+
+The cross-spectral protocol's real scenes (benchmarks/bench_crossspectral.py: Landsat Nanjing and
+Taizhou both directions, Sentinel-2 OSCD cities both directions, EnMAP Potsdam) and Pucallpa's
+cross-date pairs (bench_devset.py), with the map **upsampled by the gap** so the query is
+``--gap`` (8) times coarser than the map: the query keeps its sensor's GSD (30 m Landsat and
+EnMAP, 20 m Sentinel-2 SWIR, 90 m Pucallpa; rescaled x0.9-1.1, any rotation), the map is the
+visible luminance of the other date at GSD / gap (Landsat, EnMAP: 3.75 m; Sentinel-2 10 m RGB
+x4: 2.5 m; Pucallpa 11.25 m), bicubic. The hidden case this stands for: EnMAP SWIR 30 m on a
+3.6 m airborne orthophoto (issue 34). What it cannot show: the fine detail a real 3.6 m map
+has and a 30 m map lacks (no such pair is in ../shared); the map level's decimation recovers
+the original map here, so the figures say whether the search reaches the right level, not how
+well a 30 m query matches a real airborne map's 30 m level.
+
+Halves as in the protocols (by city; Pucallpa by date pair). Unrelated: every query against the
+upsampled map of another scene of the same half. Success: accepted with median error <= one
+query pixel (``--gap`` map px) on the truth grid; errors are reported in map px.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_crossspectral as bx  # noqa: E402
+import bench_devset as dv  # noqa: E402
+
+METHODS: dict[str, dict[str, Any]] = {
+    "sift_plain": bx.METHODS["sift_plain"],
+    # the workflow as configured (config/config.yaml ``register``), both SWIR bands when present
+    "wf_default": {"pipeline": {}, "bands": "auto"},
+    # the same without the map level (``register.level.min_ratio: 0``): the query resized to
+    # the map's feature GSD, the search before issue 34 item 5
+    "wf_nolevel": {"pipeline": {"level": {"min_ratio": 0}}, "bands": "auto"},
+}
+
+
+def upsampled(sc: bx.Scene, gap: float) -> bx.Scene:
+    """``sc`` with its map resampled so that the SWIR GSD is ``gap`` x the map GSD."""
+    f = sc.swir_gsd * 1.0 / sc.map_gsd  # query px per map px before
+    up = gap / f
+    h, w = sc.map_gray.shape
+    size = (int(round(w * up)), int(round(h * up)))
+    valid = cv2.resize((sc.map_gray > 0).astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
+    img = cv2.resize(sc.map_gray.astype(np.float32), size, interpolation=cv2.INTER_CUBIC)
+    gray = np.where(valid > 0, np.clip(img, 1, 255), 0).round().astype(np.uint8)
+    to_map0 = sc.to_map
+
+    def to_map(p: np.ndarray) -> np.ndarray:
+        return (to_map0(p) + 0.5) * up - 0.5
+
+    return bx.Scene(f"{sc.name}_x{up:g}", sc.swir, sc.swir_gsd, gray, sc.map_gsd / up, to_map,
+                    sc.city, (0.9, 1.1), None)  # fmt: skip
+
+
+def pucallpa_scenes(pairs: int) -> list[bx.Scene]:
+    """Pucallpa scenes of the first ``pairs`` date pairs (SWIR of one date, red/green of the
+    other, 90 m); ``city`` = the half."""
+    out = []
+    for qd, md, half in dv.pucallpa_date_pairs()[:pairs]:
+        q, m = dv._read_puc(qd), dv._read_puc(md)
+        swir = np.where(q[0] > 0, q[0], np.nan)
+        valid = (m[2] > 0) & (m[3] > 0)
+        gray = bx._stretch(0.5 * (m[2] + m[3]), valid)
+        out.append(bx.Scene(f"puc_{qd}_on_{md}", {"1.6um": swir}, 90.0, gray, 90.0,
+                            lambda p: p, f"pucallpa_{half}"))  # fmt: skip
+    return out
+
+
+def synthetic_scenes(dirs: list[str]) -> tuple[list[bx.Scene], list[bx.Query]]:
+    """Large synthetic maps (``python -m georeg.demo.largemap --query-gsd-m 8 ...``, map 1 m):
+    the rendered SWIR query q0 (band nearest 1200 nm, 8 m pushbroom) against its map; the first
+    directory is the tuning half, the next the checking half; each query also against the other
+    map (unrelated)."""
+    import rasterio
+
+    from georeg.index.features import rgb_to_gray
+    from georeg.io.query import open_query
+    from georeg.register.band import select_band
+
+    scenes, qs = [], []
+    for k, d in enumerate(dirs):
+        d = Path(d)
+        with rasterio.open(d / "orthophoto.vrt") as ds:
+            gray = rgb_to_gray(ds.read()).astype(np.uint8)
+            x0, y1, g = ds.transform.c, ds.transform.f, ds.transform.a
+        hf = "tuning" if k % 2 == 0 else "checking"
+        sc = bx.Scene(f"synthetic_{d.name}", {}, 8.0, np.maximum(gray, 1), g, lambda p: p,
+                      f"synthetic_{hf}")  # fmt: skip
+        scenes.append(sc)
+        band, mask, _ = select_band(open_query(str(d / "queries" / "q0.hdr")), "1200nm")
+        u8 = bx._stretch(np.where(mask, band, np.nan).astype(np.float32))
+        with rasterio.open(d / "queries" / "q0_truth.tif") as ds:
+            tx, ty = ds.read(1), ds.read(2)
+        h, w = u8.shape
+        uu, vv = np.meshgrid(np.linspace(2, w - 3, 12), np.linspace(2, h - 3, 12))
+        qp = np.c_[uu.ravel(), vv.ravel()]
+        iu, iv = qp[:, 0].round().astype(int), qp[:, 1].round().astype(int)
+        mp = np.c_[(tx[iv, iu] - x0) / g - 0.5, (y1 - ty[iv, iu]) / g - 0.5]
+        q = bx.Query(f"{sc.name}_q0", sc.name, sc.name, {"1200nm": u8}, 8.0, qp, mp)
+        qs.append(q)
+    return scenes, qs
+
+
+def half(sc: bx.Scene) -> str:
+    if sc.city.startswith("synthetic_"):
+        return sc.city.split("_")[1]
+    if sc.city.startswith("pucallpa_"):
+        return sc.city.split("_")[1]
+    return bx.half_of(sc.city)
+
+
+def build(gap: float, per_scene: int, puc_pairs: int, seed: int, synthetic: list[str]
+          ) -> tuple[list[bx.Scene], list[bx.Query]]:  # fmt: skip
+    """Upsampled scenes, ``per_scene`` queries each (half the scene side; EnMAP 0.7), and every
+    query against another scene of its half (unrelated)."""
+    base = bx.all_scenes() + pucallpa_scenes(puc_pairs)
+    scenes = [upsampled(sc, gap) for sc in base]
+    rng = np.random.default_rng(seed)
+    qs = []
+    if synthetic:
+        syn, qs = synthetic_scenes(synthetic)
+        scenes += syn
+        for q in qs:
+            q.half = half(syn[0] if q.scene == syn[0].name else syn[-1])  # type: ignore[attr-defined]
+    for sc in (s for s in scenes if s.swir):
+        for i in range(per_scene):
+            frac = 0.7 if sc.city == "potsdam" else 0.5
+            q = bx.make_query(sc, rng, i, frac)
+            q.half = half(sc)  # type: ignore[attr-defined]
+            qs.append(q)
+    neg = []
+    for k, sc in enumerate(scenes):
+        others = [o for o in scenes[k + 1 :] + scenes[:k]
+                  if o.city.split("_")[0] != sc.city.split("_")[0] and half(o) == half(sc)]  # fmt: skip
+        other = others[1 % len(others)]
+        for q in (x for x in qs if x.scene == sc.name):
+            n = bx.Query(q.name + "_vs_" + other.name, sc.name, other.name, q.bands, q.gsd, None,
+                         None)  # fmt: skip
+            n.half = q.half  # type: ignore[attr-defined]
+            neg.append(n)
+    for q in qs + neg:
+        q.tol_px = gap  # type: ignore[attr-defined]
+    return scenes, qs + neg
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+    ap.add_argument("--gap", type=float, default=8.0)
+    ap.add_argument("--per-scene", type=int, default=1)
+    ap.add_argument("--puc-pairs", type=int, default=8, help="Pucallpa date pairs (of 28)")
+    ap.add_argument("--methods", default="sift_plain,wf_default")
+    ap.add_argument("--half", choices=("tuning", "checking", "both"), default="both")
+    ap.add_argument("--only", default="", help="comma list of scene-name prefixes")
+    ap.add_argument("--seed", type=int, default=11)
+    ap.add_argument(
+        "--synthetic",
+        default="",
+        help="comma list of georeg.demo.largemap directories (query 8 m, map 1 m)",
+    )
+    ap.add_argument("--out", default=str(bx.ROOT / "benchmarks" / "out" / "scale_gap.json"))
+    ap.add_argument("--table", help="print the table of a .jsonl record file and stop")
+    ap.add_argument("-v", action="store_true")
+    a = ap.parse_args(argv)
+    if a.table:
+        dv.table_from_jsonl(a.table)
+        return 0
+    if not bx.DATES.is_dir():
+        print(f"no development data at {bx.DATES}", file=sys.stderr)
+        return 1
+    cv2.setNumThreads(1)
+    syn = [d for d in a.synthetic.split(",") if d]
+    scenes, queries = build(a.gap, a.per_scene, a.puc_pairs, a.seed, syn)
+    if a.half != "both":
+        queries = [q for q in queries if q.half == a.half]  # type: ignore[attr-defined]
+    if a.only:
+        pre = tuple(a.only.split(","))
+        queries = [q for q in queries if q.scene.startswith(pre)]
+    by = {s.name: s for s in scenes}
+    methods = a.methods.split(",")
+    rows: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    partial = Path(a.out).with_suffix(".jsonl")
+    partial.write_text("")
+    for qi, q in enumerate(queries):
+        sc = by[q.map_scene]
+        group = "pucallpa" if q.scene.startswith("puc_") else q.scene.split("_")[0]
+        group = "synthetic" if q.scene.startswith("synthetic") else group
+        for name in methods:
+            c0 = time.process_time()
+            res = bx.run_method(q, sc, METHODS[name], a.seed + qi)
+            cpu = time.process_time() - c0
+            j = dv.judge(q, sc, res)
+            rec = {"query": q.name, "group": group, "half": q.half,  # type: ignore[attr-defined]
+                   "positive": q.truth is not None, **j, "inliers": res["inliers"],
+                   "matches": res["matches"], "log10_nfa": res.get("log10_nfa"),
+                   "seconds": res["seconds"], "cpu_seconds": cpu,
+                   "ratio": q.gsd / sc.map_gsd}  # fmt: skip
+            rows[name].append(rec)
+            with partial.open("a") as f:
+                f.write(json.dumps({"method": name, **rec}, default=float) + "\n")
+            if a.v:
+                e = "-" if j["error_px"] is None else f"{j['error_px']:.2f}"
+                print(f"{rec['half'][:5]} {q.name:40s} {name:12s} {j['outcome']:12s} err {e:>8s} "
+                      f"inl {res['inliers']:3d}/{res['matches']:4d} {res['seconds']:.1f}s "
+                      f"cpu {cpu:.1f}s", flush=True)  # fmt: skip
+    summary = dv.table(rows, methods)
+    Path(a.out).write_text(json.dumps({"summary": summary, "gap": a.gap, "rows": rows},
+                                      indent=1, default=float))  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

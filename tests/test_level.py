@@ -1,0 +1,94 @@
+"""A map level near the query's GSD for queries much coarser than the map (issue 34 item 5)."""
+
+from __future__ import annotations
+
+import benchmark_module
+import cv2
+import numpy as np
+import pytest
+import rasterio
+from rasterio.transform import from_origin
+
+from georeg.index.features import detect_and_describe, rgb_to_gray
+from georeg.register import level
+from georeg.register.search import MapSource, map_for_query
+
+
+def test_level_only_for_queries_much_coarser_than_the_map():
+    assert level.level_gsd(30.0, 3.6, {}) == 30.0  # 8x: the level at the query's GSD
+    assert level.level_gsd(2.0, 1.0, {}) is None  # 2x: the index at the feature GSD
+    assert level.level_gsd(None, 1.0, {}) is None  # unknown GSD: the guesses of the index search
+    assert level.level_gsd(30.0, 3.6, {"min_ratio": 0}) is None  # switched off
+
+
+def _ortho(path, rgb: np.ndarray, x0: float, y1: float, g: float, nodata_box=None) -> None:
+    prof = {"driver": "GTiff", "width": rgb.shape[2], "height": rgb.shape[1], "count": 3,
+            "dtype": "uint8", "crs": "EPSG:32633", "transform": from_origin(x0, y1, g, g)}  # fmt: skip
+    with rasterio.open(path, "w", **prof) as ds:
+        ds.write(rgb)
+        if nodata_box is not None:
+            m = np.full(rgb.shape[1:], 255, np.uint8)
+            r0, r1, c0, c1 = nodata_box
+            m[r0:r1, c0:c1] = 0
+            ds.write_mask(m)
+
+
+def test_orthophoto_level_is_the_block_average_at_the_right_place(tmp_path):
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(20, 230, (3, 96, 128)).astype(np.uint8)
+    x0, y1, g = 500000.0, 5000000.0, 0.5
+    _ortho(tmp_path / "o.tif", rgb, x0, y1, g, nodata_box=(0, 8, 0, 8))
+    read = level.read_ortho_level(str(tmp_path / "o.tif"))
+    gray, A = read((x0, y1 - 96 * g, x0 + 128 * g, y1), 4 * g)  # 4 x 4 blocks
+    assert gray.shape == (24, 32)
+    want = rgb_to_gray(rgb).astype(np.float64).reshape(24, 4, 32, 4).mean(axis=(1, 3))
+    assert np.abs(gray[3:, 3:].astype(float) - want[3:, 3:]).max() <= 1.0
+    assert (gray[:2, :2] == 0).all()  # the masked corner stays nodata
+    # level pixel (col 5, row 7) centre = centre of its 4 x 4 block of orthophoto pixels
+    x, y, _ = A @ np.array([5.0, 7.0, 1.0])
+    assert (x, y) == pytest.approx((x0 + (5 * 4 + 2) * g, y1 - (7 * 4 + 2) * g))
+
+
+def _map_source(gray: np.ndarray, g: float) -> MapSource:
+    f = detect_and_describe(gray, gray > 0, {})
+    xy = np.c_[f.xy[:, 0] * g, -f.xy[:, 1] * g].astype(np.float64)
+    return MapSource(xy, f.desc, g, angle=f.angle.astype(np.float64), scale=f.scale * g)
+
+
+def test_a_level_too_large_is_refused_with_the_reason_and_the_index_is_kept():
+    rng = np.random.default_rng(0)
+    gray = cv2.GaussianBlur(rng.integers(1, 255, (400, 400)).astype(np.uint8), (0, 0), 2)
+    src = _map_source(gray, 1.0)
+    out, factors, rec = map_for_query(src, None, 50, 50, 8.0, [8.0],
+                                      {"level": {"max_mpx": 1e-4}}, lambda b, g: None)  # fmt: skip
+    assert out is src and factors == [8.0]
+    assert "max_mpx" in rec["reason"] and "prior" in rec["reason"]
+
+
+def _bench():
+    return benchmark_module.load("bench_scale_gap")
+
+
+def test_landsat_swir_30m_on_a_map_8x_finer_registers_and_not_on_another_city(shared_data):
+    """Taizhou: Landsat SWIR of one date (30 m, rotated, rescaled x0.9-1.1) against the other
+    date's visible map at 3.75 m (the scale gap of EnMAP on an airborne orthophoto): found
+    within one query pixel through the level; against another city's map at 3.75 m: not
+    found."""
+    sg = _bench()
+    bx = sg.bx
+    sc = sg.upsampled(bx.landsat_scene("taizhou", 1), 8.0)
+    q = bx.make_query(sc, np.random.default_rng(11), 0, 0.5)
+    q.tol_px = 8.0
+    assert q.gsd / sc.map_gsd > 7
+    spec = {"pipeline": {}, "bands": "auto"}
+    res = bx.run_method(q, sc, spec, 11)
+    j = sg.dv.judge(q, sc, res)
+    assert j["outcome"] == "success", j
+    assert j["error_px"] <= 8.0  # map px: one query pixel
+    assert res["level"]["gsd"] == pytest.approx(q.gsd) and res["level"]["features"] > 100
+    other = bx.s2_scene("abudhabi")
+    f = 3.75 / other.map_gsd
+    m = cv2.resize(other.map_gray, None, fx=1 / f, fy=1 / f, interpolation=cv2.INTER_CUBIC)
+    neg_map = bx.Scene("abudhabi_375", {}, 30.0, np.clip(m, 1, 255), 3.75, lambda p: p, "abudhabi")
+    neg = bx.Query(q.name + "_vs_abudhabi", sc.name, neg_map.name, q.bands, q.gsd, None, None)
+    assert not bx.run_method(neg, neg_map, spec, 11)["accepted"]
