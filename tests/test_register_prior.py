@@ -123,11 +123,12 @@ def test_sources_run_in_order_only_while_nothing_is_accepted(monkeypatch):
     from georeg.register import fuse
     from georeg.register.search import MapView, QueryInput
 
-    calls = []
+    calls, seen = [], []
 
     def make(name, accept):
         def source(q, view, parts, conf):
             calls.append(name)
+            seen.append(q.tests_before)
             part = {"part": len(parts), "accepted": accept, "candidates_tried": 2}
             return [*parts, part], {"ran": True, "candidates": 2}
 
@@ -142,6 +143,7 @@ def test_sources_run_in_order_only_while_nothing_is_accepted(monkeypatch):
     q = QueryInput(np.zeros((8, 8), np.uint8), None, 1.0, [1.0])  # type: ignore[arg-type]
     parts, split, ran, _ = fuse.run_sources(q, MapView(None), parts0, {})  # type: ignore[arg-type]
     assert calls == ["a", "b"]  # "c" after an accepted source: not run
+    assert seen == [8, 10]  # one a-contrario count: each source sees the tests run before it
     assert [(r["name"], r["accepted"], r["candidates"]) for r in ran] == [
         ("features", False, 8), ("small_windows", False, 2), ("cfog_null", True, 2)]  # fmt: skip
     assert len(parts) == 3 and parts[-1]["accepted"]

@@ -116,3 +116,15 @@ def test_source_adds_a_whole_query_part():
     pts = np.array([[0, 0], [159, 0], [0, 159], [159, 159]], float)
     err = matching.apply_h(np.array(parts[0]["homography"]), pts) - matching.apply_h(A @ truth, pts)
     assert np.abs(err).max() < 2.0 * g
+
+
+def test_tests_of_earlier_sources_count_in_the_nfa():
+    """One a-contrario count for the whole search: the tests the sources before rift ran are
+    added to its 36 rotations (NFA linear in the number of tests)."""
+    m = _scene(2)
+    q, _ = _query(m, (160.0, 160.0), 20.0, 150)
+    r0 = rift.register(q, m, 1.0, _acc())
+    r1 = rift.register(q, m, 1.0, _acc(), tests_before=1000)
+    assert r0["accepted"]
+    n = rift.DEFAULTS["rotations"]
+    assert r1["log10_nfa"] - r0["log10_nfa"] == pytest.approx(math.log10((n + 1000) / n), abs=1e-6)

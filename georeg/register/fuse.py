@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from itertools import combinations
 from typing import Any
 
@@ -249,7 +250,10 @@ def run_sources(
     q: QueryInput, view: MapView, parts: list[dict[str, Any]], conf: dict[str, Any]
 ) -> tuple[list[dict[str, Any]], dict[str, Any], list[dict[str, Any]], dict[str, float]]:
     """After the parts' feature search, every source of ``SOURCES`` in turn while nothing is
-    accepted (the whole-query search also records the split plan).
+    accepted (the whole-query search also records the split plan). Each source sees, as
+    ``q.tests_before``, the candidates tried by the feature search and the sources before it:
+    its NFA counts them with its own (one a-contrario count for the whole search, so a source
+    added at the end cannot add false accepts by testing on its own budget).
 
     Returns the parts (one more per accepted source), the split record of registration.json
     (the plan; ``small``: the small-query sources' records), the ``sources`` record (name,
@@ -264,6 +268,7 @@ def run_sources(
             continue
         t0 = time.perf_counter()
         n0 = len(parts)
+        q = replace(q, tests_before=int(sum(r["candidates"] for r in ran)))
         parts, recs[name] = fn(q, view, parts, conf)
         if recs[name].get("ran"):
             timings[name] = time.perf_counter() - t0

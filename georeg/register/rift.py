@@ -332,11 +332,12 @@ def register(
     map_feats: tuple[np.ndarray, np.ndarray] | None = None,
     gsd_m: float | None = None,
     map_gsd_m: float = 1.0,
+    tests_before: int = 0,
 ) -> dict[str, Any]:
     """The query (uint8, 0 = nodata) against the map (uint8, 0 = nodata): ``scale`` = map px per
     query px (the known GSD ratio). Every rotation's mutual matches, thinned -> rigid fit (``rigid_ransac``) ->
     ``acceptance.decide`` (residuals of all matches in map px, area = the map's valid pixels,
-    tests = the rotations). Returns ``accepted``, ``H`` (query px -> map px), ``log10_nfa``,
+    tests = the rotations + ``tests_before``, the tests of the sources that ran before). Returns ``accepted``, ``H`` (query px -> map px), ``log10_nfa``,
     ``inliers``, ``matches``, ``tests``, ``angle_deg``, ``lowest_log10_nfa`` and ``decision``."""
     from georeg.register import acceptance
 
@@ -371,7 +372,8 @@ def register(
         capped = np.where(res <= c["nfa_cap_px"], res, 1e9)  # a miss: p = 1, n unchanged
         dec = acceptance.decide(to_m @ H, capped, int(inl.sum()), area, w, h,
                                 gsd_m if gsd_m is not None else scale * map_gsd_m, acc_conf,
-                                n_candidates=n_rot, inlier_q_xy=q[inl])  # fmt: skip
+                                n_candidates=n_rot + int(tests_before),
+                                inlier_q_xy=q[inl])  # fmt: skip
         lnfa = float(dec.get("log10_nfa", math.inf))
         key = (bool(dec["accepted"]), -lnfa)
         if best["decision"] is None or key > (bool(best["accepted"]), -best["log10_nfa"]):
@@ -420,10 +422,10 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]],
         A = A @ np.array([[1 / f, 0, 0.5 / f - 0.5], [0, 1 / f, 0.5 / f - 0.5], [0, 0, 1.0]])
     u8 = q.u8 if q.u8.ndim == 2 else q.u8[0]
     r = register(u8, m_u8.astype(np.uint8), float(q.gsd) / (m_px / f), conf.get("acceptance") or {},
-                 c, gsd_m=float(q.gsd), map_gsd_m=m_px / f)  # fmt: skip
+                 c, gsd_m=float(q.gsd), map_gsd_m=m_px / f, tests_before=q.tests_before)  # fmt: skip
     H = None if r["H"] is None else A @ r["H"]
     rec = {"ran": True, "candidates": int(r["tests"]), "accepted": r["accepted"],
-           "log10_nfa": r["log10_nfa"], "inliers": r["inliers"], "matches": r["matches"],
+           "tests_before": int(q.tests_before), "log10_nfa": r["log10_nfa"], "inliers": r["inliers"], "matches": r["matches"],
            "angle_deg": r["angle_deg"], "map_px": int(m_u8.size),
            "reason": "" if r["decision"] is None else r["decision"].get("reason", ""),
            "seconds": time.perf_counter() - t0}  # fmt: skip

@@ -236,13 +236,16 @@ class QueryFeatures:
 class QueryInput:
     """What every source of candidates sees of the query: its band(s) (uint8, 0 = nodata; the
     primary first), the whole query's features, its GSD in map units (None = unknown), the
-    resize factors to the map's feature GSD and the seed."""
+    resize factors to the map's feature GSD, the seed, and ``tests_before``: the candidates the
+    sources run before this one tried (``fuse.run_sources``), which a source's a-contrario count
+    adds to its own, so that the NFA counts every test of the whole search."""
 
     u8: np.ndarray
     features: QueryFeatures
     gsd: float | None
     factors: list[float]
     seed: int = 0
+    tests_before: int = 0
 
 
 @dataclass

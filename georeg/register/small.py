@@ -156,10 +156,12 @@ def _guided_rematch(
     q_gsd: float,
     reg_conf: dict[str, Any],
     seed: int,
+    tests_before: int = 0,
 ) -> tuple[Any, matching.HomographyFit, dict[str, Any], float] | None:
     """The guided re-match around the similarity ``H`` (query px -> map x, y) at the radii
     ``radii_px`` (a later radius only refines an accepted fit): (matches, fit, decision,
-    radius) of the last fit kept, or None when nothing could be fitted."""
+    radius) of the last fit kept, or None when nothing could be fitted. The NFA counts every
+    rotation, disc and window, plus ``tests_before`` (the sources that ran before)."""
     best = None
     for k, radius_px in enumerate(float(v) for v in sc["radii_px"]):
         disc = math.pi * radius_px**2
@@ -171,6 +173,7 @@ def _guided_rematch(
         if fit is None:
             break
         n_tests = n_rot * max(1, int(math.ceil(win_area / disc))) * max(1, int(n_windows))
+        n_tests += int(tests_before)
         dec = decide_small(fit, disc, n_tests, qf.width, qf.height, q_gsd, gm.q_xy, reg_conf)
         if best is not None and (not dec["accepted"] or fit.n_inliers <= best[1].n_inliers):
             break  # a smaller radius only replaces an accepted fit by a better one
@@ -193,6 +196,7 @@ def small_register(
     n_windows: int = 1,
     qf: QueryFeatures | None = None,
     region: tuple[float, float, float, float] | None = None,
+    tests_before: int = 0,
 ) -> dict[str, Any]:
     """Register a small query in one map window: CFOG peak, then the guided re-match with dense
     features at radii ``radii_px`` (feature px; a later radius only refines an accepted fit).
@@ -243,7 +247,7 @@ def small_register(
     best = None
     for j, (S, angle, score) in enumerate(hyps):
         got = _guided_rematch(win_to_map @ S, q_xy, q_desc, mxy, mdesc, knn, g, sc, win_area,
-                              n_rot, n_windows, qf, q_gsd, reg_conf, seed)  # fmt: skip
+                              n_rot, n_windows, qf, q_gsd, reg_conf, seed, tests_before)  # fmt: skip
         if got is None:
             continue
         if best is None or got[2]["accepted"] or got[2]["log10_nfa"] < best[2]["log10_nfa"]:
@@ -347,7 +351,8 @@ def window_source(
 
     def register(k: int, gray: np.ndarray, A: np.ndarray, b: tuple[float, ...]) -> dict[str, Any]:
         return small_register(u8, gsd_m, window_u8(gray), A, source.gsd_m, conf,
-                              source.features_conf, seed + k, len(windows), qf, b)  # fmt: skip
+                              source.features_conf, seed + k, len(windows), qf, b,
+                              q.tests_before)  # fmt: skip
 
     return first_accepted_window(windows, read_window, register, parts, h, "small",
                                  ("angle_deg", "dense_score", "peak"), grow)  # fmt: skip
