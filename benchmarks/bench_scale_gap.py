@@ -45,6 +45,8 @@ METHODS: dict[str, dict[str, Any]] = {
     # the same without the map level (``register.level.min_ratio: 0``): the query resized to
     # the map's feature GSD, the search before issue 34 item 5
     "wf_nolevel": {"pipeline": {"level": {"min_ratio": 0}}, "bands": "auto"},
+    # the default, then the workflow's refinement stage at the map's full resolution
+    "wf_refined": {"pipeline": {}, "bands": "auto", "refine": {}},
 }
 
 
@@ -123,8 +125,8 @@ def half(sc: bx.Scene) -> str:
     return bx.half_of(sc.city)
 
 
-def build(gap: float, per_scene: int, puc_pairs: int, seed: int, synthetic: list[str]
-          ) -> tuple[list[bx.Scene], list[bx.Query]]:  # fmt: skip
+def build(gap: float, per_scene: int, puc_pairs: int, seed: int, synthetic: list[str],
+          frac: float = 0.5) -> tuple[list[bx.Scene], list[bx.Query]]:  # fmt: skip
     """Upsampled scenes, ``per_scene`` queries each (half the scene side; EnMAP 0.7), and every
     query against another scene of its half (unrelated)."""
     base = bx.all_scenes() + pucallpa_scenes(puc_pairs)
@@ -138,8 +140,7 @@ def build(gap: float, per_scene: int, puc_pairs: int, seed: int, synthetic: list
             q.half = half(syn[0] if q.scene == syn[0].name else syn[-1])  # type: ignore[attr-defined]
     for sc in (s for s in scenes if s.swir):
         for i in range(per_scene):
-            frac = 0.7 if sc.city == "potsdam" else 0.5
-            q = bx.make_query(sc, rng, i, frac)
+            q = bx.make_query(sc, rng, i, max(frac, 0.7) if sc.city == "potsdam" else frac)
             q.half = half(sc)  # type: ignore[attr-defined]
             qs.append(q)
     neg = []
@@ -161,9 +162,11 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--gap", type=float, default=8.0)
     ap.add_argument("--per-scene", type=int, default=1)
+    ap.add_argument("--frac", type=float, default=0.5, help="query side / scene side")
     ap.add_argument("--puc-pairs", type=int, default=8, help="Pucallpa date pairs (of 28)")
     ap.add_argument("--methods", default="sift_plain,wf_default")
     ap.add_argument("--half", choices=("tuning", "checking", "both"), default="both")
+    ap.add_argument("--positives-only", action="store_true")
     ap.add_argument("--only", default="", help="comma list of scene-name prefixes")
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument(
@@ -183,9 +186,11 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     cv2.setNumThreads(1)
     syn = [d for d in a.synthetic.split(",") if d]
-    scenes, queries = build(a.gap, a.per_scene, a.puc_pairs, a.seed, syn)
+    scenes, queries = build(a.gap, a.per_scene, a.puc_pairs, a.seed, syn, a.frac)
     if a.half != "both":
         queries = [q for q in queries if q.half == a.half]  # type: ignore[attr-defined]
+    if a.positives_only:
+        queries = [q for q in queries if q.truth is not None]
     if a.only:
         pre = tuple(a.only.split(","))
         queries = [q for q in queries if q.scene.startswith(pre)]

@@ -26,7 +26,7 @@ from rasterio.transform import Affine
 from georeg.register.geolocation import map_xy, write_geolocation
 from georeg.report.evaluation import run_evaluate_query
 from georeg.report.figures import load_query_data, make_query_figures
-from georeg.report.html import parse_timings, pooled_text, query_seconds, run_report
+from georeg.report.html import level_text, parse_timings, pooled_text, query_seconds, run_report
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 CHROMIUM = Path("/usr/bin/chromium")
@@ -437,3 +437,10 @@ def test_pooled_bands_text() -> None:
     assert pooled_text([{"index": None, "wavelength_nm": None}]) == "mean"
     assert pooled_text([{"index": 0, "wavelength_nm": None}]) == "index 0"
     assert pooled_text(None) is None
+
+
+def test_level_text() -> None:
+    lv = {"gsd": 30.0, "width": 157, "height": 186, "features": 127, "seconds": 0.2}
+    assert level_text(lv) == "orthophoto averaged to 30 map units: 157 x 186 px, 127 features"
+    assert level_text({"gsd": 30.0, "reason": "too large"}) == "not used: too large"
+    assert level_text(None) is None

@@ -308,6 +308,16 @@ def pooled_text(pooled: Any) -> str | None:
     return ", ".join(out)
 
 
+def level_text(level: Any) -> str | None:
+    """``registration.json``'s ``level`` (georeg.register.level) as one line; None: no level."""
+    if not level:
+        return None
+    if level.get("features") is None:
+        return f"not used: {level.get('reason')}"
+    return (f"orthophoto averaged to {float(level['gsd']):.3g} map units: {level.get('width')} x "
+            f"{level.get('height')} px, {level['features']} features")  # fmt: skip
+
+
 def query_section(q: QueryInputs, reg: Mapping[str, Any], ev: Mapping[str, Any]) -> str:
     """One query: key numbers, parts table, figures."""
     name = html.escape(q.name)
@@ -333,6 +343,7 @@ def query_section(q: QueryInputs, reg: Mapping[str, Any], ev: Mapping[str, Any])
         ("log10 NFA", reg.get("log10_nfa")),
         ("candidates tried", reg.get("candidates_tried")),
     ]
+    kv.append(("map level (query much coarser than the map)", level_text(reg.get("level"))))
     if err.get("px"):
         px, m = err["px"], err.get("m") or {}
         for k in ("median", "p90", "max", "rmse"):
