@@ -47,6 +47,11 @@ def test_orthophoto_level_is_the_block_average_at_the_right_place(tmp_path):
     # level pixel (col 5, row 7) centre = centre of its 4 x 4 block of orthophoto pixels
     x, y, _ = A @ np.array([5.0, 7.0, 1.0])
     assert (x, y) == pytest.approx((x0 + (5 * 4 + 2) * g, y1 - (7 * 4 + 2) * g))
+    # as the sources' window reader: float, NaN = nodata, the same place
+    win, A2 = level.window_reader(read, 4 * g)((x0, y1 - 96 * g, x0 + 128 * g, y1))
+    assert np.isnan(win[:2, :2]).all() and np.array_equal(win[3:, 3:], gray[3:, 3:])
+    assert np.array_equal(A2, A)
+    assert read((x0 - 900, y1 + 100, x0 - 800, y1 + 200), 4 * g) is None  # off the orthophoto
 
 
 def _map_source(gray: np.ndarray, g: float) -> MapSource:
@@ -59,9 +64,9 @@ def test_a_level_too_large_is_refused_with_the_reason_and_the_index_is_kept():
     rng = np.random.default_rng(0)
     gray = cv2.GaussianBlur(rng.integers(1, 255, (400, 400)).astype(np.uint8), (0, 0), 2)
     src = _map_source(gray, 1.0)
-    out, factors, rec = map_for_query(src, None, 50, 50, 8.0, [8.0],
-                                      {"level": {"max_mpx": 1e-4}}, lambda b, g: None)  # fmt: skip
-    assert out is src and factors == [8.0]
+    view, factors, rec = map_for_query(src, None, 50, 50, 8.0, [8.0],
+                                       {"level": {"max_mpx": 1e-4}}, None, lambda b, g: None)  # fmt: skip
+    assert view.source is src and factors == [8.0]
     assert "max_mpx" in rec["reason"] and "prior" in rec["reason"]
 
 

@@ -338,8 +338,8 @@ def register_query(
     with ``split``, ``parts``, ``sources``, the terms' records, ``prior`` and ``level``."""
     bounds = prior_bounds(prior, source.crs_wkt)
     h, w = u8.shape[-2:]
-    src, factors, lrec = map_for_query(source, bounds, w, h, gsd_m, factors, conf, read_level)
-    view = MapView(src, read_window)
+    view, factors, lrec = map_for_query(source, bounds, w, h, gsd_m, factors, conf, read_window,
+                                        read_level)  # fmt: skip
     full = query_features(u8, (0, h), factors, view.source.features_conf)
     n = int(conf.get("parts", 2))
     parts = [search_one_part(u8, k, view.source, conf, gsd_m, factors, seed, full)
@@ -389,9 +389,11 @@ def run_fuse_parts(
     }
     t1 = time.perf_counter()
     factors = feature_scales(gsd, source.gsd_m, reg_conf.get("unknown_gsd_factors", [1.0]))
-    reader = None if not ortho else level.read_ortho_level(ortho)
-    src, factors, lrec = map_for_query(source, bounds, w, h, gsd, factors, reg_conf, reader)
-    view = MapView(src, None if not ortho else ortho_window_reader(ortho))
+    view, factors, lrec = map_for_query(
+        source, bounds, w, h, gsd, factors, reg_conf,
+        None if not ortho else ortho_window_reader(ortho),
+        None if not ortho else level.read_ortho_level(ortho),
+    )  # fmt: skip
     full = query_features(u8, (0, h), factors, view.source.features_conf)
     timings["fuse_features"] = time.perf_counter() - t1
     fused, rec = decide(QueryInput(u8, full, gsd, factors, seed), view, parts, reg_conf, dsm)

@@ -81,6 +81,7 @@ def read_ortho_level(ortho: str) -> LevelReader:
     read; GDAL streams the source, memory is the level's (``max_mpx``)."""
     import rasterio
     from rasterio.enums import Resampling
+    from rasterio.errors import WindowError
     from rasterio.windows import Window, from_bounds
 
     from georeg.index.features import rgb_to_gray
@@ -88,7 +89,10 @@ def read_ortho_level(ortho: str) -> LevelReader:
     def read(b: Bounds, gsd: float) -> tuple[np.ndarray, np.ndarray] | None:
         with rasterio.open(ortho) as ds:
             win = from_bounds(*b, ds.transform).round_offsets().round_lengths()
-            win = win.intersection(Window(0, 0, ds.width, ds.height))
+            try:
+                win = win.intersection(Window(0, 0, ds.width, ds.height))
+            except WindowError:  # the bounds miss the orthophoto
+                return None
             f = gsd / abs(ds.transform.a)
             ow, oh = max(1, round(win.width / f)), max(1, round(win.height / f))
             bands = min(ds.count, 3)
@@ -101,5 +105,19 @@ def read_ortho_level(ortho: str) -> LevelReader:
         sx, sy = tr.a * win.width / ow, tr.e * win.height / oh
         A = np.array([[sx, 0, tr.c + 0.5 * sx], [0, sy, tr.f + 0.5 * sy], [0, 0, 1.0]])
         return gray, A
+
+    return read
+
+
+def window_reader(read_level: LevelReader, gsd: float) -> Callable[[Bounds], Any]:
+    """A ``LevelReader`` at ``gsd`` as the sources' orthophoto window reader (``MapView``):
+    bounds -> (float gray, NaN = nodata; 3 x 3 level pixel centre -> map x, y) or None."""
+
+    def read(b: Bounds) -> tuple[np.ndarray, np.ndarray] | None:
+        got = read_level(b, gsd)
+        if got is None:
+            return None
+        gray, A = got
+        return np.where(gray > 0, gray.astype(np.float32), np.nan), A
 
     return read

@@ -134,27 +134,34 @@ def map_for_query(
     gsd_m: float | None,
     factors: list[float],
     conf: dict[str, Any],
+    read_window: Any = None,
     read_level: level.LevelReader | None = None,
-) -> tuple[MapSource, list[float], dict[str, Any] | None]:
+) -> tuple[MapView, list[float], dict[str, Any] | None]:
     """The map a query searches and the query's resize factors: the map clipped to the
     location prior (``clip_to_prior``), and, when the query is much coarser than the map's
     features (``register.level``), that map's orthophoto averaged to the query's GSD and its
-    features (``georeg.register.level``) with the query at factor 1. Returns (source, factors,
-    the level's record or None when no level was asked for)."""
+    features (``georeg.register.level``) with the query at factor 1; the dense sources and checks
+    then read the orthophoto at that level too (``level.window_reader``: the null scan, the
+    small-query windows and the orthophoto check shrink the map to about the query's GSD
+    anyway). Returns (view, factors, the level's record or None when no level was asked for)."""
     source = clip_to_prior(source, prior, width, height, gsd_m, factors)
     lconf = {**level.DEFAULTS, **(conf.get("level") or {})}
     g = level.level_gsd(gsd_m, source.gsd_m, lconf)
     if g is None:
-        return source, factors, None
+        return MapView(source, read_window), factors, None
     if read_level is None:
-        return source, factors, {"gsd": g, "reason": "no orthophoto to read the level from"}
+        rec = {"gsd": g, "reason": "no orthophoto to read the level from"}
+        return MapView(source, read_window), factors, rec
     feats, rec = level.level_features(read_level, source.bounds, g, source.features_conf,
                                       float(lconf["max_mpx"]))  # fmt: skip
     if feats is None:
         log.warning("map level not used: %s", rec.get("reason"))
-        return source, factors, rec
-    out = MapSource(feats["xy"], feats["desc"], g, source.crs_wkt, angle=feats["angle"],
-                    scale=feats["scale"], clip=source.clip, settings=source.features_conf)  # fmt: skip
+        return MapView(source, read_window), factors, rec
+    out = MapView(
+        MapSource(feats["xy"], feats["desc"], g, source.crs_wkt, angle=feats["angle"],
+                  scale=feats["scale"], clip=source.clip, settings=source.features_conf),
+        None if read_window is None else level.window_reader(read_level, g),
+    )  # fmt: skip
     return out, [float(gsd_m) / g], rec
 
 
@@ -821,8 +828,9 @@ def run_search_part(
     factors = feature_scales(gsd, source.gsd_m, reg_conf.get("unknown_gsd_factors", [1.0]))
     prior = prior_bounds(meta.get("prior"), source.crs_wkt, band_json)
     reader = None if not ortho else level.read_ortho_level(ortho)
-    source, factors, lrec = map_for_query(source, prior, u8.shape[-1], u8.shape[-2], gsd, factors,
-                                          reg_conf, reader)  # fmt: skip
+    view, factors, lrec = map_for_query(source, prior, u8.shape[-1], u8.shape[-2], gsd, factors,
+                                        reg_conf, None, reader)  # fmt: skip
+    source = view.source
     t1 = time.perf_counter()
     res = search_one_part(u8, part, source, reg_conf, gsd, factors, seed)
     res["prior"] = prior_record(meta.get("prior"), prior)
