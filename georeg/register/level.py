@@ -28,6 +28,11 @@ Bounds = tuple[float, float, float, float]
 #: map x, y) of the orthophoto over ``bounds`` averaged to pixels of ``gsd`` map units, or None
 LevelReader = Callable[[Bounds, float], "tuple[np.ndarray, np.ndarray] | None"]
 
+#: the dense sources and checks (CFOG null scan, small-query windows, orthophoto check) read the
+#: orthophoto this many times finer than the level: they correlate a small query enlarged to
+#: ~96-400 px (the 63 px Sentinel-2 norcia query: found with windows at 2x, missed at 1x)
+WINDOW_FINER = 2.0
+
 DEFAULTS: dict[str, Any] = {
     "min_ratio": 3.0,  # query GSD / map feature GSD from which the search uses a map level
     "max_mpx": 64.0,  # the level's largest size; a larger map needs a location prior

@@ -160,7 +160,7 @@ def map_for_query(
     out = MapView(
         MapSource(feats["xy"], feats["desc"], g, source.crs_wkt, angle=feats["angle"],
                   scale=feats["scale"], clip=source.clip, settings=source.features_conf),
-        None if read_window is None else level.window_reader(read_level, g),
+        None if read_window is None else level.window_reader(read_level, g / level.WINDOW_FINER),
     )  # fmt: skip
     return out, [float(gsd_m) / g], rec
 
