@@ -32,7 +32,7 @@ import numpy as np
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(REPO / "benchmarks"), str(REPO / "tests")]
+sys.path[:0] = [str(REPO), str(REPO / "benchmarks"), str(REPO / "tests")]  # this checkout's georeg
 BRIGHTON = REPO.parent / "shared" / "data" / "brighton"
 
 
@@ -163,6 +163,7 @@ def brighton(a) -> dict:
     base = locate_all(single, None, ms, fl)
     withfm = locate_all(single, None, ms, fl, fmap)
     table([("map only", base), ("feature map", withfm)], lambda r: gps_error(r, gps))
+    (work / "records.json").write_text(json.dumps({"map_only": base, "feature_map": withfm}, default=str))
     # 3. exports of the flight: the sequence (SfM points) and the single photos (map corners)
     from georeg.io.atomic import write_json
 
@@ -228,6 +229,7 @@ def demo(a) -> dict:
     withfm = locate_all(frames, vcam, ms, fl, fmap)
     print(f"## Demo video, frames {half}..{n - 1} every {a.every} alone ({len(fmap)} feature-map points)\n")
     table([("map only", base), ("feature map", withfm)], err)
+    (work / "records.json").write_text(json.dumps({"map_only": base, "feature_map": withfm}, default=str))
     out = {"video": {"map_only": summary(base, err), "feature_map": summary(withfm, err)}}
     if a.skip_frames:
         return out

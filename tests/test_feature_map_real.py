@@ -83,9 +83,10 @@ def test_feature_map_path_on_a_later_strip(flight):
         if str(rec.get("path", "")).startswith("feature map"):
             served += 1
             assert rec["verification"]["score"] >= int(fl["min_inliers"])
-            if rec["feature_map"]["strong"]:  # a strong one replaced the map-only search
-                assert rec["coarse"]["reason"].startswith("not run: the feature map")
-                assert "direct_attempts" not in rec
+            # a verified one replaced the map-only search, as the feature map gives it
+            assert rec["coarse"]["reason"].startswith("not run: the feature map")
+            assert "direct_attempts" not in rec and "pnp_attempts" not in rec
+            assert np.allclose(rec["camera_center_xyz"], rec["feature_map"]["pose"]["camera_center_xyz"])
     assert served >= 1
 
 
