@@ -6,7 +6,9 @@ Real flight (../shared/data/brighton: 18 DJI photos in 3 strips, GPS kept apart 
 the first ``--split`` photos, as an ordered sequence (rule trajectory's pipeline), build the
 feature map; every other photo is localised alone, map-only and with the feature map:
 
-    nice python benchmarks/bench_feature_maps.py brighton [--split 9] [--work /tmp/bench_fm]
+    nice python benchmarks/bench_feature_maps.py brighton [--split 9] [--swap] [--work /tmp/bench_fm]
+
+(``--swap``: the photos after the split build the feature map, the first ones are localised.)
 
 Demo (a finished default run in <results dir>): every ``--every``-th frame of the second half of
 the demo video, alone, against the feature map of a trajectory built from the first half only,
@@ -135,6 +137,8 @@ def brighton(a) -> dict:
     gps = json.loads((BRIGHTON / "gps.json").read_text())
     photos = sorted((BRIGHTON / "frames").glob("DJI_*.JPG"))
     seq, single = photos[: a.split], photos[a.split :]
+    if a.swap:  # the checking half: the last photos build the feature map, the first are localised
+        seq, single = photos[a.split :], photos[: a.split]
     t0 = time.perf_counter()
     if a.reuse and (work / "map" / "index").is_dir():  # the map of an earlier run of this command
         m = work / "map"
@@ -267,6 +271,7 @@ def main(argv: list[str]) -> None:
     sub = ap.add_subparsers(dest="cmd", required=True)
     b = sub.add_parser("brighton")
     b.add_argument("--split", type=int, default=9)
+    b.add_argument("--swap", action="store_true", help="photos after --split build the map, the others are localised")
     b.add_argument("--work", default="/tmp/bench_fm")
     d = sub.add_parser("demo")
     d.add_argument("results")

@@ -83,10 +83,14 @@ def test_feature_map_path_on_a_later_strip(flight):
         if str(rec.get("path", "")).startswith("feature map"):
             served += 1
             assert rec["verification"]["score"] >= int(fl["min_inliers"])
-            # a verified one replaced the map-only search, as the feature map gives it
-            assert rec["coarse"]["reason"].startswith("not run: the feature map")
-            assert "direct_attempts" not in rec and "pnp_attempts" not in rec
-            assert np.allclose(rec["camera_center_xyz"], rec["feature_map"]["pose"]["camera_center_xyz"])
+            fm = rec["feature_map"]  # the pose polished on the map only when that verifies 1.5 x higher
+            assert fm["polished"] == (fm["polished_score"] >= 1.5 * max(fm["raw_score"], 1))
+            # on this small map (whole-map matching is the cheap map-only path) only a strong one
+            # ends the search, a weaker one competed with the map-only poses and won
+            assert fm["served"] == fm["strong"] and (fm["score"] >= 100 or not fm["strong"])
+            if fm["served"]:
+                assert rec["coarse"]["reason"].startswith("not run: the feature map")
+                assert "direct_attempts" not in rec and "pnp_attempts" not in rec
     assert served >= 1
 
 

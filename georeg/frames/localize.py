@@ -300,17 +300,23 @@ def _refine_exif_focal(scored: list, window_of, rec: dict, max_sigma: float = 0.
 
 
 def feature_map_hypothesis(gray: np.ndarray, K: np.ndarray, w: int, h: int, maps: MapSources,
-                           vconf: dict, feat_conf: dict, min_inl: int, rec: dict,
-                           windows: list) -> tuple | None:  # fmt: skip
+                           vconf: dict, feat_conf: dict, min_inl: int, rec: dict, windows: list,
+                           ad: dict, small_map: bool = False) -> tuple | None:  # fmt: skip
     """The pose of the frame against the feature maps (``maps.feature_map``), verified against
     the orthophoto / DSM by the same score as every path: (path, camera, PnPResult, verification)
-    when it reaches ``min_inl`` (the feature map then serves the frame: no map-only search), else
-    a recorded fallback (``feature_map`` in the record) and None; a covered frame whose pose does
-    not verify gets ``feature_map.start`` (the caller's direct matching starts from
-    ``feature_map.pose`` instead of the coarse search).
-    The pose is scored as the feature map gives it, not polished on the map window: with the few
-    window matches of a small frame the polish moves a 0.5 m feature-map pose by 1-6 m at the same
-    score (demo video, docs/experiments/2026-11-26-feature-maps.md "session 12")."""
+    when it reaches ``min_inl``, else a recorded fallback (``feature_map`` in the record) and
+    None; a covered frame whose pose does not verify gets ``feature_map.start`` (the caller's
+    direct matching starts from ``feature_map.pose`` instead of the coarse search).
+    ``feature_map.served``: the pose ends the search (no map-only stage runs) when it verifies
+    strong by the adaptive bounds ``ad`` (the bar a direct pose must pass to end the search), or
+    verifies as the feature map gives it on a map larger than ``direct.whole_map_first_px`` (where
+    the map-only search is the coarse search, not the cheap whole-map matching); else it joins
+    the map-only hypotheses (the best score wins).
+    The pose is taken as the feature map gives it unless its polish on the map window scores at
+    least ``polish_gain`` x higher (``feature_map.polished``): with the few window matches of a
+    small frame the polish moves a 0.5 m feature-map pose by 1-6 m at about the same score (demo
+    video: x 1.0-1.14), while a feature map a metre or two off the map verifies far higher once
+    polished (brighton: x 5.7-9.8); docs/experiments/2026-11-26-feature-maps.md "session 12"."""
     t = time.perf_counter()
     r = maps.feature_map.locate(gray, K)
     rec["feature_map"] = {"sources": [Path(s).name for s in maps.feature_map.sources], **r.info}
@@ -322,15 +328,26 @@ def feature_map_hypothesis(gray: np.ndarray, K: np.ndarray, w: int, h: int, maps
     zg = maps.ground_z(cam.C)
     mt = match_window(gray, cam, maps.ortho, maps.dsm, feat_conf, maps.gsd, zg, vconf, maps.flat_z)
     tol = verification_tolerance(cam, maps.gsd, zg, float(vconf["verify_px"]))
-    v = verify(mt, cam, tol)
-    rec["feature_map"].update(score=v["score"], rms_px=v["rms_px"], seconds=round(time.perf_counter() - t, 3))
+    v = {**verify(mt, cam, tol), "polish_moved_m": 0.0}
+    cam_p = polish(mt, cam, tol, int(vconf["polish_rounds"]), bool(vconf["polish_distinct"]))
+    vp = {**verify(mt, cam_p, tol), "polish_moved_m": float(np.linalg.norm(cam_p.C - cam.C))}
+    polished = vp["score"] >= float(maps.feature_map.c["polish_gain"]) * max(v["score"], 1)
+    rec["feature_map"].update(raw_score=v["score"], polished_score=vp["score"], polished=bool(polished),
+                              polish_moved_m=round(vp["polish_moved_m"], 3))  # fmt: skip
+    cam, v = (cam_p, vp) if polished else (cam, v)
+    strong = bool(ad["enabled"] and v["score"] >= int(ad["strong_score"])
+                  and (v["rms_px"] or np.inf) <= float(ad["strong_rms_frac"]) * float(v["tolerance_px"]))  # fmt: skip
+    served = strong or not (polished or small_map)
+    rec["feature_map"].update(score=v["score"], rms_px=v["rms_px"], strong=strong, served=served,
+                              seconds=round(time.perf_counter() - t, 3))  # fmt: skip
     if v["score"] < min_inl:  # covered, but off the map by more than the tolerance: a start only
         rec["feature_map"].update(used=False, start=True, fallback=f"map-only path from the feature-map "
                                   f"pose as its start (it verifies {v['score']} < {min_inl} against the map)")  # fmt: skip
         return None
-    windows.append(mt)
+    if rec["feature_map"]["served"]:  # a weak one must not change the window map-only poses are scored on
+        windows.append(mt)
     rec["feature_map"]["used"] = True
-    return ("feature map 2D-3D", cam, r.pnp, {**v, "polish_moved_m": 0.0})
+    return ("feature map 2D-3D", cam, r.pnp, v)
 
 
 def _cam_record(cam: PinholeCamera) -> dict:
@@ -425,7 +442,8 @@ def localize_image(
     windows: list[Matches] = []
     vconf = {**DIRECT_DEFAULTS, **(c.get("direct") or {})}
     map_px = maps.whole_map_px()
-    fm_served = None  # a verified feature-map pose: (path, camera, PnPResult, verification)
+    fm_served = None  # a feature-map pose that ends the search: (path, camera, PnPResult, verification)
+    fm_weak = None  # a feature-map pose that verified but does not end the search: one more hypothesis
     fm_start = False  # a feature-map pose that did not verify: the direct matching's start
 
     def whole_map() -> None:
@@ -449,8 +467,12 @@ def localize_image(
         gray = cv2.cvtColor(und, cv2.COLOR_RGB2GRAY)
         if maps.feature_map is not None:  # earlier sets' feature maps first
             t = time.perf_counter()
-            fm_served = feature_map_hypothesis(gray, K, w, h, maps, vconf, feat_conf, min_inl, rec, windows)
-            hyps += [fm_served[:3]] if fm_served else []  # verified: it serves, no map-only search
+            fm = feature_map_hypothesis(gray, K, w, h, maps, vconf, feat_conf, min_inl, rec, windows,
+                                        {**DEFAULTS["adaptive"], **(c.get("adaptive") or {})},
+                                        map_px <= int(vconf["whole_map_first_px"]))  # fmt: skip
+            fm_served = fm if fm and rec["feature_map"]["served"] else None
+            fm_weak = fm[:3] if fm and not fm_served else None
+            hyps += [fm_served[:3]] if fm_served else []  # it ends the search: no map-only stage
             fm_start = bool(rec["feature_map"].get("start"))  # covered, not verified: a start
             timings["feature_map_s"] = time.perf_counter() - t
         if not hyps and map_px <= int(vconf["whole_map_first_px"]):
@@ -521,6 +543,8 @@ def localize_image(
     tried_whole = any(a["start"] == "whole map" for a in rec.get("direct_attempts", []))
     if not hyps and not tried_whole and map_px <= int(vconf["whole_map_px"]):
         whole_map()
+    if fm_weak:  # a feature-map pose that does not end the search competes with the map-only ones
+        hyps.append(fm_weak)
 
     # every hypothesis is polished by LM on its guided matches over the whole frame, then scored
     # (guided inliers, the same map window); the intensity refinement of the best must beat it
