@@ -3,11 +3,12 @@
 A small demo city (seed 7) and a 90-frame flight over it: the first half, geo-referenced as a
 video (rule trajectory's pipeline), writes its feature map; frames of the second half are
 localised alone, map-only and against that feature map. Where the feature map covers a frame and
-its pose verifies against the map, it serves the frame (at least one of the 3 frames): path
-"feature map 2D-3D" in the record, the pose as the feature map gives it (polished on the map
-window only when that verifies 1.5 x higher), none of the map-only stages run (coarse search, direct matching, render-match-PnP,
-intensity refinement), the pose within 2 map pixels of the truth and as close to it as the
-map-only one (within half a map pixel); the frames it does not serve take the map-only path."""
+its pose verifies against the map, it serves the frame (at least 2 of the 3 frames; 3 measured):
+path "feature map 2D-3D" in the record, the pose as the feature map gives it (polished on the map
+window only when that verifies 1.5 x higher, or higher and strong), none of the map-only stages
+run (coarse search, direct matching, render-match-PnP, intensity refinement), the pose within 2
+map pixels of the truth and as close to it as the map-only one (within half a map pixel); the
+frames it does not serve take the map-only path."""
 
 from __future__ import annotations
 
@@ -83,14 +84,14 @@ def test_feature_map_serves_second_half_frames_at_least_as_accurately(first_half
         # served by the feature map, verified against the map by the common score
         assert rec["path"] == "feature map 2D-3D" and fm["served"]
         assert rec["verification"]["score"] == fm["score"] >= 15
-        # the pose is the feature map's, moved on the map window only when that verifies 1.5 x higher
+        # the pose is the feature map's, moved on the map window only when that verifies higher
         moved = np.linalg.norm(
             np.subtract(rec["camera_center_xyz"], fm["pose"]["camera_center_xyz"])
         )
-        assert moved < 1e-6 if not fm["polished"] else fm["polished_score"] >= 1.5 * fm["raw_score"]
+        assert moved < 1e-6 if not fm["polished"] else fm["polished_score"] > fm["raw_score"]
         # nothing of the map-only path ran after it
         assert rec["coarse"]["reason"] == "not run: the feature map gave a pose"
         assert not {"direct_attempts", "pnp_attempts", "refine", "search_attempts"} & set(rec)
         assert "feature_map_s" in rec["timings_s"] and "pnp_s" not in rec["timings_s"]
         assert e_fm < 2 * gsd, e_fm
-    assert served >= 1
+    assert served >= 2

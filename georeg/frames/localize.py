@@ -313,7 +313,7 @@ def feature_map_hypothesis(gray: np.ndarray, K: np.ndarray, w: int, h: int, maps
     the map-only search is the coarse search, not the cheap whole-map matching); else it joins
     the map-only hypotheses (the best score wins).
     The pose is taken as the feature map gives it unless its polish on the map window scores at
-    least ``polish_gain`` x higher (``feature_map.polished``): with the few window matches of a
+    least ``polish_gain`` x higher, or higher and strong (``feature_map.polished``): with the few window matches of a
     small frame the polish moves a 0.5 m feature-map pose by 1-6 m at about the same score (demo
     video: x 1.0-1.14), while a feature map a metre or two off the map verifies far higher once
     polished (brighton: x 5.7-9.8); docs/experiments/2026-11-26-feature-maps.md "session 12"."""
@@ -331,12 +331,15 @@ def feature_map_hypothesis(gray: np.ndarray, K: np.ndarray, w: int, h: int, maps
     v = {**verify(mt, cam, tol), "polish_moved_m": 0.0}
     cam_p = polish(mt, cam, tol, int(vconf["polish_rounds"]), bool(vconf["polish_distinct"]))
     vp = {**verify(mt, cam_p, tol), "polish_moved_m": float(np.linalg.norm(cam_p.C - cam.C))}
-    polished = vp["score"] >= float(maps.feature_map.c["polish_gain"]) * max(v["score"], 1)
+    strong_of = lambda x: bool(ad["enabled"] and x["score"] >= int(ad["strong_score"])  # noqa: E731
+                               and (x["rms_px"] or np.inf) <= float(ad["strong_rms_frac"]) * float(x["tolerance_px"]))  # fmt: skip
+    # polished when clearly higher, or higher and strong (then well determined by many matches)
+    polished = vp["score"] >= float(maps.feature_map.c["polish_gain"]) * max(v["score"], 1) or (
+        strong_of(vp) and vp["score"] > v["score"])  # fmt: skip
     rec["feature_map"].update(raw_score=v["score"], polished_score=vp["score"], polished=bool(polished),
                               polish_moved_m=round(vp["polish_moved_m"], 3))  # fmt: skip
     cam, v = (cam_p, vp) if polished else (cam, v)
-    strong = bool(ad["enabled"] and v["score"] >= int(ad["strong_score"])
-                  and (v["rms_px"] or np.inf) <= float(ad["strong_rms_frac"]) * float(v["tolerance_px"]))  # fmt: skip
+    strong = strong_of(v)
     served = strong or not (polished or small_map)
     rec["feature_map"].update(score=v["score"], rms_px=v["rms_px"], strong=strong, served=served,
                               seconds=round(time.perf_counter() - t, 3))  # fmt: skip
