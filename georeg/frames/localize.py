@@ -313,10 +313,11 @@ def feature_map_hypothesis(gray: np.ndarray, K: np.ndarray, w: int, h: int, maps
     the map-only search is the coarse search, not the cheap whole-map matching); else it joins
     the map-only hypotheses (the best score wins).
     The pose is taken as the feature map gives it unless its polish on the map window scores at
-    least ``polish_gain`` x higher, or higher and strong (``feature_map.polished``): with the few window matches of a
-    small frame the polish moves a 0.5 m feature-map pose by 1-6 m at about the same score (demo
-    video: x 1.0-1.14), while a feature map a metre or two off the map verifies far higher once
-    polished (brighton: x 5.7-9.8); docs/experiments/2026-11-26-feature-maps.md "session 12"."""
+    least ``polish_gain`` x higher, or higher and strong (``feature_map.polished``): with the few
+    window matches of a small frame the polish moves a 0.5 m feature-map pose by 1-6 m at about
+    the same score (demo video: x 1.0-1.14), while a feature map a metre or two off the map
+    verifies far higher once polished (brighton: x 5.7-9.8); docs/experiments/
+    2026-11-26-feature-maps.md "session 12"."""
     t = time.perf_counter()
     r = maps.feature_map.locate(gray, K)
     rec["feature_map"] = {"sources": [Path(s).name for s in maps.feature_map.sources], **r.info}
@@ -578,7 +579,7 @@ def localize_image(
     # with a searched focal: the render stage refines it
     ad = {**DEFAULTS["adaptive"], **(c.get("adaptive") or {})}
     strong = False
-    if fm_served:  # verified as the feature map gives it: final, no render stage nor refinement
+    if fm_served:  # the feature-map pose ends the search: final, no render stage nor refinement
         scored.append(fm_served)
         strong = True
         rec["adaptive"] = {"feature_map_served": True, "skipped": ["coarse search", "direct 2D-3D",
