@@ -6,7 +6,9 @@ Real flight (../shared/data/brighton: 18 DJI photos in 3 strips, GPS kept apart 
 the first ``--split`` photos, as an ordered sequence (rule trajectory's pipeline), build the
 feature map; every other photo is localised alone, map-only and with the feature map:
 
-    nice python benchmarks/bench_feature_maps.py brighton [--split 9] [--work /tmp/bench_fm]
+    nice python benchmarks/bench_feature_maps.py brighton [--split 9] [--swap] [--work /tmp/bench_fm]
+
+(``--swap``: the photos after the split build the feature map, the first ones are localised.)
 
 Demo (a finished default run in <results dir>): every ``--every``-th frame of the second half of
 the demo video, alone, against the feature map of a trajectory built from the first half only,
@@ -32,7 +34,7 @@ import numpy as np
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(REPO / "benchmarks"), str(REPO / "tests")]
+sys.path[:0] = [str(REPO), str(REPO / "benchmarks"), str(REPO / "tests")]  # this checkout's georeg
 BRIGHTON = REPO.parent / "shared" / "data" / "brighton"
 
 
@@ -135,6 +137,8 @@ def brighton(a) -> dict:
     gps = json.loads((BRIGHTON / "gps.json").read_text())
     photos = sorted((BRIGHTON / "frames").glob("DJI_*.JPG"))
     seq, single = photos[: a.split], photos[a.split :]
+    if a.swap:  # the checking half: the last photos build the feature map, the first are localised
+        seq, single = photos[a.split :], photos[: a.split]
     t0 = time.perf_counter()
     if a.reuse and (work / "map" / "index").is_dir():  # the map of an earlier run of this command
         m = work / "map"
@@ -163,6 +167,7 @@ def brighton(a) -> dict:
     base = locate_all(single, None, ms, fl)
     withfm = locate_all(single, None, ms, fl, fmap)
     table([("map only", base), ("feature map", withfm)], lambda r: gps_error(r, gps))
+    (work / "records.json").write_text(json.dumps({"map_only": base, "feature_map": withfm}, default=str))
     # 3. exports of the flight: the sequence (SfM points) and the single photos (map corners)
     from georeg.io.atomic import write_json
 
@@ -228,6 +233,7 @@ def demo(a) -> dict:
     withfm = locate_all(frames, vcam, ms, fl, fmap)
     print(f"## Demo video, frames {half}..{n - 1} every {a.every} alone ({len(fmap)} feature-map points)\n")
     table([("map only", base), ("feature map", withfm)], err)
+    (work / "records.json").write_text(json.dumps({"map_only": base, "feature_map": withfm}, default=str))
     out = {"video": {"map_only": summary(base, err), "feature_map": summary(withfm, err)}}
     if a.skip_frames:
         return out
@@ -265,6 +271,7 @@ def main(argv: list[str]) -> None:
     sub = ap.add_subparsers(dest="cmd", required=True)
     b = sub.add_parser("brighton")
     b.add_argument("--split", type=int, default=9)
+    b.add_argument("--swap", action="store_true", help="photos after --split build the map, the others are localised")
     b.add_argument("--work", default="/tmp/bench_fm")
     d = sub.add_parser("demo")
     d.add_argument("results")

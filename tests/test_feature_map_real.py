@@ -83,9 +83,15 @@ def test_feature_map_path_on_a_later_strip(flight):
         if str(rec.get("path", "")).startswith("feature map"):
             served += 1
             assert rec["verification"]["score"] >= int(fl["min_inliers"])
-            if rec["feature_map"]["strong"]:  # a strong one replaced the map-only search
+            fm = rec["feature_map"]  # polished on the map when that verifies 1.5 x higher (or strong)
+            assert fm["polished"] >= (fm["polished_score"] >= 1.5 * max(fm["raw_score"], 1))
+            assert not fm["polished"] or fm["polished_score"] > fm["raw_score"]
+            # on this small map (whole-map matching is the cheap map-only path) only a strong one
+            # ends the search, a weaker one competed with the map-only poses and won
+            assert fm["served"] == fm["strong"] and (fm["score"] >= 100 or not fm["strong"])
+            if fm["served"]:
                 assert rec["coarse"]["reason"].startswith("not run: the feature map")
-                assert "direct_attempts" not in rec
+                assert "direct_attempts" not in rec and "pnp_attempts" not in rec
     assert served >= 1
 
 

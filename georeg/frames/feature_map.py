@@ -31,6 +31,7 @@ DEFAULTS: dict[str, Any] = {
     "reproj_px": 4.0,  # PnP inlier threshold (working-level px)
     "min_inliers": 15,  # fewer PnP inliers: the feature map does not cover the frame
     "max_features": 8000,  # COLMAP SIFT features of the frame
+    "polish_gain": 1.5,  # the pose polished on the map window replaces it when it verifies this x higher
     "seed": 0,
 }
 

@@ -301,14 +301,23 @@ def _refine_exif_focal(scored: list, window_of, rec: dict, max_sigma: float = 0.
 
 def feature_map_hypothesis(gray: np.ndarray, K: np.ndarray, w: int, h: int, maps: MapSources,
                            vconf: dict, feat_conf: dict, min_inl: int, rec: dict, windows: list,
-                           ad: dict) -> tuple | None:  # fmt: skip
-    """The pose of the frame against the feature maps (``maps.feature_map``), kept as a hypothesis
-    only when it verifies against the orthophoto / DSM (the same score as every path, polished
-    on the same window); else a recorded fallback (``feature_map`` in the record) and None; a
-    covered frame whose pose does not verify gets ``feature_map.start`` (the caller's direct
-    matching starts from ``feature_map.pose`` instead of the coarse search).
-    ``feature_map.strong``: it verified strong by the adaptive bounds ``ad`` (then it replaces the
-    map-only search; a weak one only joins the map-only hypotheses)."""
+                           ad: dict, small_map: bool = False) -> tuple | None:  # fmt: skip
+    """The pose of the frame against the feature maps (``maps.feature_map``), verified against
+    the orthophoto / DSM by the same score as every path: (path, camera, PnPResult, verification)
+    when it reaches ``min_inl``, else a recorded fallback (``feature_map`` in the record) and
+    None; a covered frame whose pose does not verify gets ``feature_map.start`` (the caller's
+    direct matching starts from ``feature_map.pose`` instead of the coarse search).
+    ``feature_map.served``: the pose ends the search (no map-only stage runs) when it verifies
+    strong by the adaptive bounds ``ad`` (the bar a direct pose must pass to end the search), or
+    verifies as the feature map gives it on a map larger than ``direct.whole_map_first_px`` (where
+    the map-only search is the coarse search, not the cheap whole-map matching); else it joins
+    the map-only hypotheses (the best score wins).
+    The pose is taken as the feature map gives it unless its polish on the map window scores at
+    least ``polish_gain`` x higher, or higher and strong (``feature_map.polished``): with the few
+    window matches of a small frame the polish moves a 0.5 m feature-map pose by 1-6 m at about
+    the same score (demo video: x 1.0-1.14), while a feature map a metre or two off the map
+    verifies far higher once polished (brighton: x 5.7-9.8); docs/experiments/
+    2026-11-26-feature-maps.md "session 12"."""
     t = time.perf_counter()
     r = maps.feature_map.locate(gray, K)
     rec["feature_map"] = {"sources": [Path(s).name for s in maps.feature_map.sources], **r.info}
@@ -320,18 +329,29 @@ def feature_map_hypothesis(gray: np.ndarray, K: np.ndarray, w: int, h: int, maps
     zg = maps.ground_z(cam.C)
     mt = match_window(gray, cam, maps.ortho, maps.dsm, feat_conf, maps.gsd, zg, vconf, maps.flat_z)
     tol = verification_tolerance(cam, maps.gsd, zg, float(vconf["verify_px"]))
-    v = verify(mt, polish(mt, cam, tol, int(vconf["polish_rounds"]), bool(vconf["polish_distinct"])), tol)
-    strong = bool(ad["enabled"] and v["score"] >= int(ad["strong_score"])
-                  and (v["rms_px"] or np.inf) <= float(ad["strong_rms_frac"]) * float(v["tolerance_px"]))  # fmt: skip
-    rec["feature_map"].update(score=v["score"], strong=strong, seconds=round(time.perf_counter() - t, 3))
+    v = {**verify(mt, cam, tol), "polish_moved_m": 0.0}
+    cam_p = polish(mt, cam, tol, int(vconf["polish_rounds"]), bool(vconf["polish_distinct"]))
+    vp = {**verify(mt, cam_p, tol), "polish_moved_m": float(np.linalg.norm(cam_p.C - cam.C))}
+    strong_of = lambda x: bool(ad["enabled"] and x["score"] >= int(ad["strong_score"])  # noqa: E731
+                               and (x["rms_px"] or np.inf) <= float(ad["strong_rms_frac"]) * float(x["tolerance_px"]))  # fmt: skip
+    # polished when clearly higher, or higher and strong (then well determined by many matches)
+    polished = vp["score"] >= float(maps.feature_map.c["polish_gain"]) * max(v["score"], 1) or (
+        strong_of(vp) and vp["score"] > v["score"])  # fmt: skip
+    rec["feature_map"].update(raw_score=v["score"], polished_score=vp["score"], polished=bool(polished),
+                              polish_moved_m=round(vp["polish_moved_m"], 3))  # fmt: skip
+    cam, v = (cam_p, vp) if polished else (cam, v)
+    strong = strong_of(v)
+    served = strong or not (polished or small_map)
+    rec["feature_map"].update(score=v["score"], rms_px=v["rms_px"], strong=strong, served=served,
+                              seconds=round(time.perf_counter() - t, 3))  # fmt: skip
     if v["score"] < min_inl:  # covered, but off the map by more than the tolerance: a start only
         rec["feature_map"].update(used=False, start=True, fallback=f"map-only path from the feature-map "
                                   f"pose as its start (it verifies {v['score']} < {min_inl} against the map)")  # fmt: skip
         return None
-    if strong:  # a weak one must not change the window the map-only poses are scored on
+    if rec["feature_map"]["served"]:  # a weak one must not change the window map-only poses are scored on
         windows.append(mt)
     rec["feature_map"]["used"] = True
-    return ("feature map 2D-3D", cam, r.pnp)
+    return ("feature map 2D-3D", cam, r.pnp, v)
 
 
 def _cam_record(cam: PinholeCamera) -> dict:
@@ -426,7 +446,8 @@ def localize_image(
     windows: list[Matches] = []
     vconf = {**DIRECT_DEFAULTS, **(c.get("direct") or {})}
     map_px = maps.whole_map_px()
-    fm_weak = None  # a feature-map pose that verified, but not strong
+    fm_served = None  # a feature-map pose that ends the search: (path, camera, PnPResult, verification)
+    fm_weak = None  # a feature-map pose that verified but does not end the search: one more hypothesis
     fm_start = False  # a feature-map pose that did not verify: the direct matching's start
 
     def whole_map() -> None:
@@ -451,16 +472,18 @@ def localize_image(
         if maps.feature_map is not None:  # earlier sets' feature maps first
             t = time.perf_counter()
             fm = feature_map_hypothesis(gray, K, w, h, maps, vconf, feat_conf, min_inl, rec, windows,
-                                        {**DEFAULTS["adaptive"], **(c.get("adaptive") or {})})  # fmt: skip
-            hyps += [fm] if fm and rec["feature_map"]["strong"] else []  # strong: no map-only search
-            fm_weak = fm if fm and not hyps else None  # weak: one more hypothesis after it
+                                        {**DEFAULTS["adaptive"], **(c.get("adaptive") or {})},
+                                        map_px <= int(vconf["whole_map_first_px"]))  # fmt: skip
+            fm_served = fm if fm and rec["feature_map"]["served"] else None
+            fm_weak = fm[:3] if fm and not fm_served else None
+            hyps += [fm_served[:3]] if fm_served else []  # it ends the search: no map-only stage
             fm_start = bool(rec["feature_map"].get("start"))  # covered, not verified: a start
             timings["feature_map_s"] = time.perf_counter() - t
         if not hyps and map_px <= int(vconf["whole_map_first_px"]):
             whole_map()  # a small map: cheaper than the coarse search
         t0c = time.perf_counter()
         co = (run_coarse(gray, K, maps, c["coarse"]) if not hyps and not fm_start else
-              Coarse(False, reason="not run: the " + ("feature map gave a pose" if rec.get("feature_map", {}).get("strong")
+              Coarse(False, reason="not run: the " + ("feature map gave a pose" if fm_served
                                                       else "whole-map direct matching gave a pose" if hyps
                                                       else "feature map gave a start")))  # fmt: skip
         timings["coarse_s"] = time.perf_counter() - t0c
@@ -524,7 +547,7 @@ def localize_image(
     tried_whole = any(a["start"] == "whole map" for a in rec.get("direct_attempts", []))
     if not hyps and not tried_whole and map_px <= int(vconf["whole_map_px"]):
         whole_map()
-    if fm_weak:  # a weakly verified feature-map pose competes with the map-only ones
+    if fm_weak:  # a feature-map pose that does not end the search competes with the map-only ones
         hyps.append(fm_weak)
 
     # every hypothesis is polished by LM on its guided matches over the whole frame, then scored
@@ -556,7 +579,12 @@ def localize_image(
     # with a searched focal: the render stage refines it
     ad = {**DEFAULTS["adaptive"], **(c.get("adaptive") or {})}
     strong = False
-    if hyps and ad["enabled"] and camera:
+    if fm_served:  # the feature-map pose ends the search: final, no render stage nor refinement
+        scored.append(fm_served)
+        strong = True
+        rec["adaptive"] = {"feature_map_served": True, "skipped": ["coarse search", "direct 2D-3D",
+                           "render-match-PnP", "intensity refinement", "focal refinement"]}  # fmt: skip
+    elif hyps and ad["enabled"] and camera:
         score_new()
         v = scored[0][3]
         strong = v["score"] >= int(ad["strong_score"]) and (v["rms_px"] or np.inf) <= float(
@@ -597,7 +625,7 @@ def localize_image(
     # 3. every hypothesis scored; the intensity refinement of the best must beat it
     score_new()
     scored.sort(key=lambda t: -t[3]["score"])
-    if scored and camera and camera.get("source") == "exif" and c["exif_focal_refine"]:
+    if scored and camera and camera.get("source") == "exif" and c["exif_focal_refine"] and not fm_served:
         _refine_exif_focal(scored, window_of, rec)
     if scored and (c.get("refine") or {}).get("enabled", True) and not strong:
         from georeg.frames.refine import refine_pose
