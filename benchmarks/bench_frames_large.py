@@ -143,6 +143,9 @@ def table(a: argparse.Namespace) -> None:
     rows = [json.loads(x) for p in a.files for x in Path(p).read_text().splitlines() if x.strip()]
     groups: dict[tuple, dict[str, list[dict]]] = {}
     for r in rows:
+        if r["status"] in ("limit", "error"):  # the whole process's seconds until it was stopped
+            r.setdefault("wall_s", r.get("wall_s_process"))
+            r.setdefault("cpu_s", r.get("cpu_s_process"))
         key = (
             r["map"],
             r.get("index", "index"),
@@ -152,7 +155,7 @@ def table(a: argparse.Namespace) -> None:
         )
         groups.setdefault(key, {}).setdefault(r["frame"], []).append(r)
     print(
-        "| map | Mpx | coarse (index, threads) | frame | status (runs) | error m | wall s | CPU s | "
+        "| map | Mpx | coarse (index, threads) | frame | status (runs) | error m (horizontal / 3-D) | wall s | CPU s | "
         "peak RSS MB | load |"
     )
     print("|---|---:|---|---|---|---:|---:|---:|---:|---|")
@@ -172,7 +175,7 @@ def table(a: argparse.Namespace) -> None:
             loads = [r.get("loadavg") for r in rs if r.get("loadavg") is not None]
             load = f"{min(loads):.1f}-{max(loads):.1f}" if loads else "-"
             print(f"| {mp} | {'-' if mpx is None else f'{mpx:.0f}'} | {mode} ({idx}, t{th}"
-                  f"{'' if ex == '{}' else ', ' + ex}) | {fr} | {st}{note} | {_cell(rs, 'h_err_m', '{:.2f}')} "
+                  f"{'' if ex == '{}' else ', ' + ex}) | {fr} | {st}{note} | {_cell(rs, 'h_err_m', '{:.2f}')} / {_cell(rs, 'pos_err_m', '{:.2f}')} "
                   f"| {_cell(rs, 'wall_s')} | {_cell(rs, 'cpu_s')} | {_cell(rs, 'peak_rss_mb', '{:.0f}')} "
                   f"| {load} |")  # fmt: skip
 
