@@ -486,20 +486,10 @@ def run_refine(q: Query, sc_map: Scene, H: np.ndarray, spec: dict[str, Any]) -> 
 def plain_window_reader(sc: Scene) -> Any:
     """The workflow's orthophoto window reader (fuse.ortho_window_reader) on a plain map array:
     bounds (map x, y; x = col g, y = -row g) -> (float window, NaN = nodata; 3 x 3 window pixel
-    centre -> map x, y) or None."""
-    g = sc.map_gsd
-    h, w = sc.map_gray.shape
+    centre -> map x, y) or None: ``plain_level_reader`` at the map's own pixel size."""
+    from georeg.register.level import window_reader
 
-    def read(b: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray] | None:
-        c0, c1 = max(0, int(math.floor(b[0] / g))), min(w, int(math.ceil(b[2] / g)) + 1)
-        r0, r1 = max(0, int(math.floor(-b[3] / g))), min(h, int(math.ceil(-b[1] / g)) + 1)
-        if c1 - c0 < 8 or r1 - r0 < 8:
-            return None
-        win = sc.map_gray[r0:r1, c0:c1].astype(np.float32)
-        win[win == 0] = np.nan
-        return win, np.array([[g, 0, c0 * g], [0, -g, -r0 * g], [0, 0, 1.0]])
-
-    return read
+    return window_reader(plain_level_reader(sc), sc.map_gsd)
 
 
 def plain_level_reader(sc: Scene) -> Any:

@@ -453,8 +453,7 @@ def main(argv: list[str] | None = None) -> int:
     partial.write_text("")
     done: dict[tuple[str, str], dict[str, Any]] = {}
     if a.reuse:
-        for line in Path(a.reuse).read_text().splitlines():
-            r = json.loads(line)
+        for r in read_records(a.reuse):
             # wide-area records are judged against every place of the query since the overlap
             # check: never reused from a run before it
             if r["method"] in a.reuse_methods.split(",") and "places" in r or (
@@ -467,8 +466,7 @@ def main(argv: list[str] | None = None) -> int:
         for name in methods:
             if (name, q.name) in done:
                 rows[name].append(done[(name, q.name)])
-                with partial.open("a") as f:
-                    f.write(json.dumps({"method": name, **done[(name, q.name)]}) + "\n")
+                append_record(partial, name, done[(name, q.name)])
                 continue
             c0 = time.process_time()
             res = run(q, by[q.map_scene], name, a.seed + qi)
@@ -482,8 +480,7 @@ def main(argv: list[str] | None = None) -> int:
                    "places": len(getattr(q, "alts", []) or []),
                    "H": None if res.get("H") is None else np.asarray(res["H"]).tolist()}  # fmt: skip
             rows[name].append(rec)
-            with partial.open("a") as f:
-                f.write(json.dumps({"method": name, **rec}, default=float) + "\n")
+            append_record(partial, name, rec)
             if a.v:
                 e = "-" if j["error_px"] is None else f"{j['error_px']:.2f}"
                 print(f"{rec['half'][:5]} {q.name:34s} {name:14s} {j['outcome']:12s} err {e:>8s} "
@@ -518,11 +515,21 @@ def table(rows: dict[str, list[dict[str, Any]]], methods: list[str]) -> dict[str
     return summary
 
 
+def read_records(path: str | Path) -> list[dict[str, Any]]:
+    """The records of a run's .jsonl file (one per query and method, ``method`` included)."""
+    return [json.loads(line) for line in Path(path).read_text().splitlines()]
+
+
+def append_record(path: Path, method: str, rec: dict[str, Any]) -> None:
+    """One record more in a run's .jsonl file (written as it is made: a cut run keeps it)."""
+    with path.open("a") as f:
+        f.write(json.dumps({"method": method, **rec}, default=float) + "\n")
+
+
 def table_from_jsonl(path: str) -> None:
     """The table of a (possibly unfinished) run from its .jsonl records."""
     rows: dict[str, list[dict[str, Any]]] = {}
-    for line in Path(path).read_text().splitlines():
-        r = json.loads(line)
+    for r in read_records(path):
         rows.setdefault(r.pop("method"), []).append(r)
     table(rows, list(rows))
 

@@ -45,8 +45,6 @@ METHODS: dict[str, dict[str, Any]] = {
     # the same without the map level (``register.level.min_ratio: 0``): the query resized to
     # the map's feature GSD, the search before issue 34 item 5
     "wf_nolevel": {"pipeline": {"level": {"min_ratio": 0}}, "bands": "auto"},
-    # the default, then the workflow's refinement stage at the map's full resolution
-    "wf_refined": {"pipeline": {}, "bands": "auto", "refine": {}},
 }
 
 
@@ -192,8 +190,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.table:
         rows: dict[str, list[dict[str, Any]]] = {}
-        for line in Path(a.table).read_text().splitlines():
-            r = json.loads(line)
+        for r in dv.read_records(a.table):
             if r["outcome"] in ("success", "false_accept") and r["positive"]:
                 ok = r["error_px"] is not None and r["error_px"] <= a.tol_query_px * r["ratio"]
                 r["outcome"] = "success" if ok else "false_accept"
@@ -220,12 +217,8 @@ def main(argv: list[str] | None = None) -> int:
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     partial = Path(a.out).with_suffix(".jsonl")
     partial.write_text("")
-    done: dict[tuple[str, str], dict[str, Any]] = {}
-    if a.reuse:
-        for line in Path(a.reuse).read_text().splitlines():
-            r = json.loads(line)
-            if r["method"] in a.reuse_methods.split(","):
-                done[(r.pop("method"), r["query"])] = r
+    done = {(r.pop("method"), r["query"]): r for r in (dv.read_records(a.reuse) if a.reuse else [])
+            if r["method"] in a.reuse_methods.split(",")}  # fmt: skip
     for qi, q in enumerate(queries):
         sc = by[q.map_scene]
         group = "pucallpa" if q.scene.startswith("puc_") else q.scene.split("_")[0]
@@ -233,8 +226,7 @@ def main(argv: list[str] | None = None) -> int:
         for name in methods:
             if (name, q.name) in done:
                 rows[name].append(done[(name, q.name)])
-                with partial.open("a") as f:
-                    f.write(json.dumps({"method": name, **done[(name, q.name)]}) + "\n")
+                dv.append_record(partial, name, done[(name, q.name)])
                 continue
             # the map's index features (the workflow builds them once, beforehand): not timed
             bx.map_features(sc, sc.map_gsd, bx.merged_conf(bx.FEATURES))
@@ -248,8 +240,7 @@ def main(argv: list[str] | None = None) -> int:
                    "seconds": res["seconds"], "cpu_seconds": cpu,
                    "ratio": q.gsd / sc.map_gsd}  # fmt: skip
             rows[name].append(rec)
-            with partial.open("a") as f:
-                f.write(json.dumps({"method": name, **rec}, default=float) + "\n")
+            dv.append_record(partial, name, rec)
             if a.v:
                 e = "-" if j["error_px"] is None else f"{j['error_px']:.2f}"
                 print(f"{rec['half'][:5]} {q.name:40s} {name:12s} {j['outcome']:12s} err {e:>8s} "
