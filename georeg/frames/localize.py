@@ -299,6 +299,14 @@ def _refine_exif_focal(scored: list, window_of, rec: dict, max_sigma: float = 0.
         scored.sort(key=lambda t: -t[3]["score"])
 
 
+def verifies_strong(v: dict, ad: dict) -> bool:
+    """A verification strong by the adaptive bounds ``ad`` (``frame_loc.adaptive``): at least
+    ``strong_score`` matches within the tolerance, RMS at most ``strong_rms_frac`` of it; such a
+    pose ends the search."""
+    return bool(ad["enabled"] and v["score"] >= int(ad["strong_score"])
+                and (v["rms_px"] or np.inf) <= float(ad["strong_rms_frac"]) * float(v["tolerance_px"]))  # fmt: skip
+
+
 def feature_map_hypothesis(gray: np.ndarray, K: np.ndarray, w: int, h: int, maps: MapSources,
                            vconf: dict, feat_conf: dict, min_inl: int, rec: dict, windows: list,
                            ad: dict, small_map: bool = False) -> tuple | None:  # fmt: skip
@@ -332,15 +340,13 @@ def feature_map_hypothesis(gray: np.ndarray, K: np.ndarray, w: int, h: int, maps
     v = {**verify(mt, cam, tol), "polish_moved_m": 0.0}
     cam_p = polish(mt, cam, tol, int(vconf["polish_rounds"]), bool(vconf["polish_distinct"]))
     vp = {**verify(mt, cam_p, tol), "polish_moved_m": float(np.linalg.norm(cam_p.C - cam.C))}
-    strong_of = lambda x: bool(ad["enabled"] and x["score"] >= int(ad["strong_score"])  # noqa: E731
-                               and (x["rms_px"] or np.inf) <= float(ad["strong_rms_frac"]) * float(x["tolerance_px"]))  # fmt: skip
     # polished when clearly higher, or higher and strong (then well determined by many matches)
     polished = vp["score"] >= float(maps.feature_map.c["polish_gain"]) * max(v["score"], 1) or (
-        strong_of(vp) and vp["score"] > v["score"])  # fmt: skip
+        verifies_strong(vp, ad) and vp["score"] > v["score"])  # fmt: skip
     rec["feature_map"].update(raw_score=v["score"], polished_score=vp["score"], polished=bool(polished),
                               polish_moved_m=round(vp["polish_moved_m"], 3))  # fmt: skip
     cam, v = (cam_p, vp) if polished else (cam, v)
-    strong = strong_of(v)
+    strong = verifies_strong(v, ad)
     served = strong or not (polished or small_map)
     rec["feature_map"].update(score=v["score"], rms_px=v["rms_px"], strong=strong, served=served,
                               seconds=round(time.perf_counter() - t, 3))  # fmt: skip
@@ -587,9 +593,7 @@ def localize_image(
     elif hyps and ad["enabled"] and camera:
         score_new()
         v = scored[0][3]
-        strong = v["score"] >= int(ad["strong_score"]) and (v["rms_px"] or np.inf) <= float(
-            ad["strong_rms_frac"]
-        ) * float(v["tolerance_px"])
+        strong = verifies_strong(v, ad)
         rec["adaptive"] = {"direct_score": v["score"], "direct_rms_px": v["rms_px"],
                            "strong": bool(strong), "skipped": ["render-match-PnP",
                            "intensity refinement"] if strong else []}  # fmt: skip
