@@ -141,7 +141,7 @@ def overlaps(refs: dict[int, np.ndarray], min_inliers: int = 30) -> dict[tuple[i
             cv2.setRNGSeed(0)
             A, inl = cv2.estimateAffinePartial2D(pi, pj, method=cv2.RANSAC,
                                                  ransacReprojThreshold=3.0)  # fmt: skip
-            if A is None or inl.sum() < min_inliers:
+            if A is None or inl.sum() < min_inliers or abs(np.linalg.det(A[:, :2])) < 1e-3:
                 continue
             T = np.vstack([A, [0, 0, 1.0]])
             out[(i, j)], out[(j, i)] = T, np.linalg.inv(T)
@@ -186,10 +186,11 @@ def srif_query(mod: str, i: int, q: np.ndarray, A0: np.ndarray, places: list[np.
     return qq
 
 
-def build_srif(mods: list[str], wide: bool, pair: bool,
-               per_half: int = 0) -> tuple[list[bx.Scene], list[bx.Query]]:  # fmt: skip
+def build_srif(mods: list[str], wide: bool, pair: bool, per_half: int = 0,
+               block: int = BLOCK) -> tuple[list[bx.Scene], list[bx.Query]]:  # fmt: skip
     """SRIF queries and maps; ``per_half`` > 0: only the first ``per_half`` pairs of each half
-    (one block, one mosaic: a run that fits a loaded machine)."""
+    (one block, one mosaic: a run that fits a loaded machine); ``block``: consecutive pairs per
+    mosaic (50: one mosaic of 40 references per half and modality)."""
     scenes: list[bx.Scene] = []
     queries: list[bx.Query] = []
     for mod in mods:
@@ -197,12 +198,12 @@ def build_srif(mods: list[str], wide: bool, pair: bool,
         for half in ("tuning", "checking"):
             hi = [i for i in idx if srif_half(i) == half]
             hi = hi[:per_half] if per_half else hi
-            step = per_half or BLOCK
+            step = per_half or block
             for b in range(0, len(hi), step):
-                block = hi[b : b + step]
-                data = {i: srif_images(mod, i) for i in block}
+                pairs = hi[b : b + step]
+                data = {i: srif_images(mod, i) for i in pairs}
                 if pair:
-                    for i in block:
+                    for i in pairs:
                         ref, q, A0 = data[i]
                         sc = bx.Scene(f"{mod}_{i}_ref", {}, MOSAIC_GSD, np.maximum(ref, 1),
                                       MOSAIC_GSD, lambda p: p, mod)  # fmt: skip
@@ -212,18 +213,18 @@ def build_srif(mods: list[str], wide: bool, pair: bool,
                         qq.setting = "pair"  # type: ignore[attr-defined]
                         queries.append(qq)
                 if wide:
-                    inside = [i for k, i in enumerate(block) if (k + 1) % LEFT_OUT_EVERY]
+                    inside = [i for k, i in enumerate(pairs) if (k + 1) % LEFT_OUT_EVERY]
                     offs, (H, W) = pack([data[i][0].shape for i in inside])
                     mosaic = np.zeros((H, W), np.uint8)
                     for i, (r, c) in zip(inside, offs, strict=True):
                         ref = data[i][0]
                         mosaic[r : r + ref.shape[0], c : c + ref.shape[1]] = np.maximum(ref, 1)
-                    name = f"{mod}_mosaic_{block[0]}_{block[-1]}"
+                    name = f"{mod}_mosaic_{pairs[0]}_{pairs[-1]}"
                     scenes.append(bx.Scene(name, {}, MOSAIC_GSD, mosaic, MOSAIC_GSD,
                                            lambda p: p, mod))  # fmt: skip
                     where = dict(zip(inside, offs, strict=True))
-                    over = overlaps({i: data[i][0] for i in block})
-                    for i in block:
+                    over = overlaps({i: data[i][0] for i in pairs})
+                    for i in pairs:
                         _, q, A0 = data[i]
                         places = []  # its own reference first, then any overlapping one
                         for j in sorted(where, key=lambda j: j != i):
@@ -404,6 +405,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("-v", action="store_true")
     ap.add_argument("--per-half", type=int, default=0,
                     help="SRIF: the first N pairs of each half per modality (0 = all 50)")
+    ap.add_argument("--block", type=int, default=BLOCK,
+                    help="SRIF wide: consecutive pairs per mosaic (every 5th left out)")
     ap.add_argument("--puc-first", type=int, default=0, help="Pucallpa: skip the first date pairs")
     ap.add_argument("--puc-crops", type=int, default=2, help="Pucallpa: crops per date pair")
     ap.add_argument("--reuse", default="",
@@ -425,7 +428,7 @@ def main(argv: list[str] | None = None) -> int:
     queries: list[bx.Query] = []
     mods = a.modalities.split(",")
     if "srif_wide" in sets or "srif_pair" in sets:
-        s, q = build_srif(mods, "srif_wide" in sets, "srif_pair" in sets, a.per_half)
+        s, q = build_srif(mods, "srif_wide" in sets, "srif_pair" in sets, a.per_half, a.block)
         scenes += s
         queries += q
     if "pucallpa" in sets:

@@ -128,3 +128,56 @@ def test_tests_of_earlier_sources_count_in_the_nfa():
     assert r0["accepted"]
     n = rift.DEFAULTS["rotations"]
     assert r1["log10_nfa"] - r0["log10_nfa"] == pytest.approx(math.log10((n + 1000) / n), abs=1e-6)
+
+
+def _box_reader(m: np.ndarray, g: float):
+    """``read_window(bounds)`` of a north-up map of ``g`` units per px with its top-left corner
+    at (0, 0): the window's pixels (NaN outside the map) and its 3 x 3 px -> x, y."""
+
+    def read(b):
+        c0, r0 = int(math.floor(b[0] / g)), int(math.floor(-b[3] / g))
+        c1, r1 = int(math.ceil(b[2] / g)), int(math.ceil(-b[1] / g))
+        out = np.full((r1 - r0, c1 - c0), np.nan)
+        rs, cs = slice(max(r0, 0), min(r1, m.shape[0])), slice(max(c0, 0), min(c1, m.shape[1]))
+        if rs.start >= rs.stop or cs.start >= cs.stop:
+            return None
+        out[rs.start - r0 : rs.stop - r0, cs.start - c0 : cs.stop - c0] = m[rs, cs]
+        return out, np.array([[g, 0, (c0 + 0.5) * g], [0, -g, -(r0 + 0.5) * g], [0, 0, 1.0]])
+
+    return read
+
+
+def test_map_read_by_windows_registers_and_counts_the_area():
+    """The source reads the orthophoto by windows of ``map_window_px`` (memory bounded by one
+    window): the valid area it counts is the map's, and a query is found across window seams."""
+    from georeg.register.search import MapSource, MapView, QueryInput
+
+    m = _scene(1)
+    q, truth = _query(m, (170.0, 150.0), 37.0, 160)
+    g = 2.0
+    A = np.array([[g, 0, g / 2], [0, -g, -g / 2], [0, 0, 1.0]])
+    src = MapSource(np.array([[0.0, -m.shape[0] * g], [m.shape[1] * g, 0.0]]),
+                    np.zeros((2, 128), np.float32), g)  # fmt: skip
+    b = (0.0, -m.shape[0] * g, m.shape[1] * g, 0.0)
+    got = rift.read_map_features(_box_reader(m, g), b, g, rift.rift_conf({"map_window_px": 128}))
+    assert got is not None and got[2] == pytest.approx(m.size)
+    view = MapView(src, _box_reader(m, g))
+    qi = QueryInput(q, None, g, [1.0], 0)  # type: ignore[arg-type]
+    conf = {"acceptance": _acc(), "rift": {"enabled": True, "map_window_px": 128}}
+    parts, rec = rift.source(qi, view, [], conf)
+    assert rec["accepted"], rec
+    pts = np.array([[0, 0], [159, 0], [0, 159], [159, 159]], float)
+    err = matching.apply_h(np.array(parts[0]["homography"]), pts) - matching.apply_h(A @ truth, pts)
+    assert np.abs(err).max() < 2.0 * g
+
+
+def test_approximate_map_search_finds_most_exact_neighbours():
+    """Above ``exact_max`` products the nearest map descriptor comes from a faiss IVF index: on a
+    scene's descriptors it agrees with the exact search for most query descriptors."""
+    c = rift.rift_conf({})
+    mxy, md = rift.map_features(_scene(3, 640), c)
+    _, qd = rift.features(_query(_scene(3, 640), (300.0, 300.0), 0.0, 300)[0], c)
+    exact = rift.MapMatcher(md, {"exact_max": 1e12}).nearest(qd)
+    approx = rift.MapMatcher(md, {"exact_max": 0}).nearest(qd)
+    assert len(md) > 1000
+    assert (exact == approx).mean() > 0.8

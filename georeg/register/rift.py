@@ -39,7 +39,11 @@ DEFAULTS: dict[str, Any] = {
     "max_angle_deg": 7.0,  # rigid: largest rotation left after the query's rotation step
     "reproj_px": 3.0,  # RANSAC threshold (map px)
     "nfa_cap_px": 6.0,  # residuals above this count as misses in the NFA (a pose certified to it)
-    "max_map_px": 16_000_000,  # larger maps are split into windows
+    "map_window_px": 1024,  # map features by windows of this side (each with its own max_kp)
+    "exact_max": 2e7,  # query x map descriptor products above which the search is approximate
+    "nprobe": 16,  # approximate search: inverted lists visited (faiss IVF, 4 sqrt(n) lists)
+    "seed": 0,  # the approximate index's k-means
+    "max_map_px": 16_000_000,  # the source is not run on larger maps (at the query's GSD)
 }
 
 
@@ -171,9 +175,8 @@ def descriptors(mim: np.ndarray, valid: np.ndarray, xy: np.ndarray, conf: dict[s
     c = rift_conf(conf)
     no, nc, patch = c["norient"], int(c["cells"]), int(c["patch"])
     h, w = mim.shape
-    onehot = (mim[..., None] == np.arange(no, dtype=np.uint8)) & valid[..., None]
-    integ = np.zeros((h + 1, w + 1, no), np.float32)
-    integ[1:, 1:] = onehot.cumsum(0, dtype=np.float32).cumsum(1, dtype=np.float32)
+    m = np.where(valid, mim, 255).astype(np.uint8)
+    integ = np.stack([cv2.integral((m == o).view(np.uint8), sdepth=cv2.CV_32S) for o in range(no)], -1)
     edges = np.round(np.linspace(-patch / 2, patch / 2, nc + 1)).astype(int)
     x0 = np.round(xy[:, 0]).astype(int)[:, None] + edges[None, :]  # (n, nc+1)
     y0 = np.round(xy[:, 1]).astype(int)[:, None] + edges[None, :]
@@ -194,20 +197,19 @@ def features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarr
 
 
 def map_features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-    """``features`` of a map, by overlapping windows when it has more than ``max_map_px`` pixels
-    (memory bounded by the window; keypoints kept in the window's core only)."""
+    """``features`` of a map by windows of ``map_window_px`` (each padded by a patch, keypoints
+    kept in its core, at most ``max_kp`` each): the keypoint density per area does not fall as
+    the map grows, and memory is bounded by the window."""
     c = rift_conf(conf)
     h, w = u8.shape
-    if h * w <= c["max_map_px"]:
-        return features(u8, c)
-    side = int(math.sqrt(c["max_map_px"]))
+    side = int(c["map_window_px"])
     m = int(c["patch"])
     xys, ds = [], []
     for r0 in range(0, h, side):
         for c0 in range(0, w, side):
             ra, ca = max(0, r0 - m), max(0, c0 - m)
             win = u8[ra : min(h, r0 + side + m), ca : min(w, c0 + side + m)]
-            if not win.any():
+            if not win[r0 - ra : r0 - ra + side, c0 - ca : c0 - ca + side].any():
                 continue
             xy, d = features(win, c)
             xy = xy + (ca, ra)
@@ -219,23 +221,54 @@ def map_features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.n
     return np.vstack(xys), np.vstack(ds)
 
 
-def match(dq: np.ndarray, dm: np.ndarray, chunk: int = 4096) -> np.ndarray:
-    """(k, 2) index pairs (query, map) of mutual nearest neighbours (largest dot product of unit
-    vectors = smallest L2), by chunks of the query."""
-    if len(dq) == 0 or len(dm) < 2:
+class MapMatcher:
+    """Nearest map descriptor of each query descriptor (largest dot product of unit vectors):
+    exact by chunks while queries x map products stay below ``exact_max``, else a faiss IVF index
+    (inner product, ``4 sqrt(n)`` lists, ``nprobe`` visited, k-means seeded) built once per map."""
+
+    def __init__(self, md: np.ndarray, conf: dict[str, Any]) -> None:
+        c = rift_conf(conf)
+        self.md = np.ascontiguousarray(md, np.float32)
+        self.exact_max = float(c["exact_max"])
+        self._ivf = None
+        self._conf = c
+
+    def _index(self):
+        if self._ivf is None:
+            import faiss
+
+            n, d = self.md.shape
+            nlist = max(16, int(4 * math.sqrt(n)))
+            quant = faiss.IndexFlatIP(d)
+            ivf = faiss.IndexIVFFlat(quant, d, nlist, faiss.METRIC_INNER_PRODUCT)
+            ivf.cp.seed = int(self._conf["seed"])
+            ivf.train(self.md)
+            ivf.add(self.md)
+            ivf.nprobe = int(self._conf["nprobe"])
+            self._ivf = ivf
+        return self._ivf
+
+    def nearest(self, dq: np.ndarray, chunk: int = 4096) -> np.ndarray:
+        """Index of the nearest map descriptor of each query descriptor."""
+        if len(dq) * len(self.md) <= self.exact_max:
+            return np.concatenate([np.argmax(dq[a : a + chunk] @ self.md.T, axis=1)
+                                   for a in range(0, len(dq), chunk)])  # fmt: skip
+        _, idx = self._index().search(np.ascontiguousarray(dq, np.float32), 1)
+        return np.maximum(idx[:, 0], 0)
+
+
+def match(dq: np.ndarray, dm: np.ndarray | MapMatcher) -> np.ndarray:
+    """(k, 2) index pairs (query, map) of mutual nearest neighbours: each query descriptor's
+    nearest map descriptor (``MapMatcher``), kept when that map descriptor's nearest query
+    descriptor is it."""
+    mm = dm if isinstance(dm, MapMatcher) else MapMatcher(dm, {})
+    if len(dq) == 0 or len(mm.md) < 2:
         return np.zeros((0, 2), int)
-    nn = np.empty(len(dq), int)
-    best_q = np.full(len(dm), -np.inf, np.float32)
-    arg_q = np.zeros(len(dm), int)
-    for a in range(0, len(dq), chunk):
-        s = dq[a : a + chunk] @ dm.T
-        nn[a : a + chunk] = np.argmax(s, axis=1)
-        col = s.max(axis=0)
-        better = col > best_q
-        arg_q[better] = a + np.argmax(s[:, better], axis=0)
-        best_q = np.maximum(best_q, col)
+    nn = mm.nearest(dq)
+    hit, inv = np.unique(nn, return_inverse=True)
+    back = np.argmax(mm.md[hit] @ dq.T, axis=1)  # each hit map descriptor's nearest query
     qi = np.arange(len(dq))
-    ok = arg_q[nn] == qi
+    ok = back[inv] == qi
     return np.c_[qi[ok], nn[ok]]
 
 
@@ -323,9 +356,46 @@ def _rotated(u8: np.ndarray, f: float, angle: float) -> tuple[np.ndarray, np.nda
     return np.where(valid, np.maximum(img, 1), 0).astype(np.uint8), A
 
 
+def rotated_features(query_u8: np.ndarray, scale: float, conf: dict[str, Any]):
+    """Yield (angle deg, keypoints, descriptors, 3 x 3 query px -> canvas px) for each of the
+    ``rotations`` of the query scaled by ``scale``. The phase maps are computed only for the
+    rotations below one orientation step (180 / norient deg): rotating the image by a step turns
+    its maximum moment map with it and shifts the maximum index map by one orientation, so the
+    other rotations are those maps warped (moment: linear, MIM and mask: nearest) with the index
+    shifted (0.86 of the MIM equal to a recomputed one at 30 deg on SRIF oi 101)."""
+    c = rift_conf(conf)
+    n_rot, no = int(c["rotations"]), int(c["norient"])
+    step = 180.0 / no
+    turns = 360.0 / step
+    per = n_rot / turns  # rotations within one step
+    if abs(per - round(per)) > 1e-9 or per < 1:
+        for k in range(n_rot):
+            img, A = _rotated(query_u8, scale, 360.0 * k / n_rot)
+            yield (360.0 * k / n_rot, *features(img, c), A)
+        return
+    per = int(round(per))
+    for k in range(per):
+        base = step * k / per
+        img, A = _rotated(query_u8, scale, base)
+        valid = img > 0
+        moment, mim = phase_maps(img, valid, c)
+        D = img.shape[0]
+        for t in range(int(round(turns))):
+            if t == 0:
+                mo, mi, va, At = moment, mim, valid, A
+            else:
+                R = cv2.getRotationMatrix2D(((D - 1) / 2, (D - 1) / 2), step * t, 1.0)
+                mo = cv2.warpAffine(moment, R, (D, D), flags=cv2.INTER_LINEAR)
+                mi = (cv2.warpAffine(mim, R, (D, D), flags=cv2.INTER_NEAREST) + t) % no
+                va = cv2.warpAffine(valid.astype(np.uint8), R, (D, D), flags=cv2.INTER_NEAREST) > 0
+                At = np.vstack([R, [0, 0, 1.0]]) @ A
+            xy = keypoints(mo, va, c)
+            yield base + step * t, xy, descriptors(mi.astype(np.uint8), va, xy, c).astype(np.float32), At
+
+
 def register(
     query_u8: np.ndarray,
-    map_u8: np.ndarray,
+    map_u8: np.ndarray | None,
     scale: float,
     acc_conf: dict[str, Any],
     conf: dict[str, Any] | None = None,
@@ -333,6 +403,7 @@ def register(
     gsd_m: float | None = None,
     map_gsd_m: float = 1.0,
     tests_before: int = 0,
+    area: float | None = None,
 ) -> dict[str, Any]:
     """The query (uint8, 0 = nodata) against the map (uint8, 0 = nodata): ``scale`` = map px per
     query px (the known GSD ratio). Every rotation's mutual matches, thinned -> rigid fit (``rigid_ransac``) ->
@@ -343,17 +414,15 @@ def register(
 
     c = rift_conf(conf)
     mxy, md = map_feats if map_feats is not None else map_features(map_u8, c)
-    area = float((map_u8 > 0).sum())
+    mm = MapMatcher(md, c)
+    area = float((map_u8 > 0).sum()) if area is None else float(area)
     n_rot = int(c["rotations"])
     h, w = query_u8.shape
     to_m = np.diag([map_gsd_m, -map_gsd_m, 1.0])  # map px -> north-up map units (handedness)
     best: dict[str, Any] = {"accepted": False, "H": None, "log10_nfa": math.inf, "inliers": 0,
                             "matches": 0, "tests": n_rot, "angle_deg": None, "decision": None}  # fmt: skip
-    for k in range(n_rot):
-        angle = 360.0 * k / n_rot
-        img, A = _rotated(query_u8, scale, angle)
-        qxy, qd = features(img, c)
-        pairs = match(qd, md)
+    for angle, qxy, qd, A in rotated_features(query_u8, scale, c):
+        pairs = match(qd, mm)
         if len(pairs) < 6:
             continue
         qc_all, m_all = qxy[pairs[:, 0]], mxy[pairs[:, 1]]  # canvas px (map GSD), map px
@@ -384,16 +453,64 @@ def register(
     return best
 
 
+def read_map_features(read_window: Any, bounds: tuple[float, float, float, float], g: float,
+                      conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, float, np.ndarray] | None:  # fmt: skip
+    """Map features of the orthophoto in ``bounds`` at ``g`` map units per pixel, read by windows
+    of ``map_window_px`` (each padded by a patch; keypoints kept in its core): keypoints in the
+    working grid's px (origin the bounds' top left, north-up), descriptors, the valid area (px)
+    and the 3 x 3 working px -> map x, y. Memory is bounded by one window. None: nothing read."""
+    from georeg.register.dense import window_u8
+
+    c = rift_conf(conf)
+    G = np.array([[g, 0, bounds[0] + g / 2], [0, -g, bounds[3] - g / 2], [0, 0, 1.0]])
+    W = int(math.ceil((bounds[2] - bounds[0]) / g))
+    Hh = int(math.ceil((bounds[3] - bounds[1]) / g))
+    side, pad = int(c["map_window_px"]), int(c["patch"])
+    xys, ds, area = [], [], 0.0
+    for r0 in range(0, Hh, side):
+        for c0 in range(0, W, side):
+            box = (bounds[0] + (c0 - pad) * g, bounds[3] - (r0 + side + pad) * g,
+                   bounds[0] + (c0 + side + pad) * g, bounds[3] - (r0 - pad) * g)  # fmt: skip
+            got = read_window(box)
+            if got is None:
+                continue
+            gray, A = got
+            m_px = float(np.sqrt(abs(np.linalg.det(A[:2, :2]))))
+            u8 = window_u8(gray)
+            f = min(1.0, m_px / g)  # the orthophoto shrunk to the working GSD when finer
+            if f < 1.0:
+                size = (max(1, round(u8.shape[1] * f)), max(1, round(u8.shape[0] * f)))
+                ok = cv2.resize((u8 > 0).astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
+                u8 = np.where(ok > 0, np.maximum(cv2.resize(u8, size, interpolation=cv2.INTER_AREA), 1), 0)
+                A = A @ np.array([[1 / f, 0, 0.5 / f - 0.5], [0, 1 / f, 0.5 / f - 0.5], [0, 0, 1.0]])
+            u8 = u8.astype(np.uint8)
+            if not u8.any():
+                continue
+            T = np.linalg.inv(G) @ A  # window px -> working px
+            xy, d = features(u8, c)
+            wxy = (np.c_[xy, np.ones(len(xy))] @ T.T)[:, :2]
+            core = ((wxy[:, 0] >= c0 - 0.5) & (wxy[:, 0] < c0 + side - 0.5)
+                    & (wxy[:, 1] >= r0 - 0.5) & (wxy[:, 1] < r0 + side - 0.5))  # fmt: skip
+            xys.append(wxy[core])
+            ds.append(d[core])
+            rr, cc = np.nonzero(u8)  # the window's valid px inside its core (working px)
+            v = np.c_[cc, rr, np.ones(len(rr))] @ T.T
+            area += float(((v[:, 0] >= c0 - 0.5) & (v[:, 0] < c0 + side - 0.5)
+                           & (v[:, 1] >= r0 - 0.5) & (v[:, 1] < r0 + side - 0.5)).sum())  # fmt: skip
+    if not xys:
+        return None
+    return np.vstack(xys), np.vstack(ds), area, G
+
+
 def source(q: Any, view: Any, parts: list[dict[str, Any]],
            conf: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, Any]]:  # fmt: skip
     """Source ``rift`` (``register.rift``; ``georeg.register.fuse.SOURCES``): the query's primary
-    band against the whole orthophoto (read once through ``view.read_window``, shrunk to the
-    query's GSD when finer), ``register``; an accepted pose becomes one more (whole-query) part.
-    Not run without the query's GSD, without an orthophoto, or above ``max_map_px`` map pixels
-    (the whole map is read: memory ~60 bytes per map pixel). Returns the parts and the record."""
+    band against the whole orthophoto (read by windows through ``view.read_window`` at the
+    query's GSD when the map is finer: ``read_map_features``), ``register``; an accepted pose
+    becomes one more (whole-query) part. Not run without the query's GSD, without an orthophoto,
+    or above ``max_map_px`` map pixels at that GSD (the cost grows with the map). Returns the
+    parts and the record."""
     import time
-
-    from georeg.register.dense import window_u8
 
     rc = dict(conf.get("rift") or {})
     if not rc.pop("enabled", False):
@@ -401,32 +518,25 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]],
     c = rift_conf(rc)
     why = ("the query's GSD is unknown" if q.gsd is None else
            "no orthophoto" if view.read_window is None else "")  # fmt: skip
-    b = view.source.bounds
+    b = tuple(float(v) for v in view.source.bounds)
     g = max(float(view.source.gsd_m), float(q.gsd or 0.0))
     if not why and (b[2] - b[0]) * (b[3] - b[1]) / g**2 > c["max_map_px"]:
         why = f"map larger than max_map_px ({c['max_map_px']:.0f}) at the query's GSD"
     if why:
         return parts, {"ran": False, "reason": why}
     t0 = time.perf_counter()
-    got = view.read_window(tuple(b))
+    got = read_map_features(view.read_window, b, g, c)
     if got is None:
         return parts, {"ran": False, "reason": "orthophoto window unreadable"}
-    gray, A = got
-    m_px = float(np.sqrt(abs(np.linalg.det(A[:2, :2]))))
-    f = min(1.0, m_px / float(q.gsd))  # the map shrunk to the query's GSD when finer
-    m_u8 = window_u8(gray)
-    if f < 1.0:
-        size = (max(1, round(m_u8.shape[1] * f)), max(1, round(m_u8.shape[0] * f)))
-        ok = cv2.resize((m_u8 > 0).astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
-        m_u8 = np.where(ok > 0, np.maximum(cv2.resize(m_u8, size, interpolation=cv2.INTER_AREA), 1), 0)
-        A = A @ np.array([[1 / f, 0, 0.5 / f - 0.5], [0, 1 / f, 0.5 / f - 0.5], [0, 0, 1.0]])
+    mxy, md, area, G = got
     u8 = q.u8 if q.u8.ndim == 2 else q.u8[0]
-    r = register(u8, m_u8.astype(np.uint8), float(q.gsd) / (m_px / f), conf.get("acceptance") or {},
-                 c, gsd_m=float(q.gsd), map_gsd_m=m_px / f, tests_before=q.tests_before)  # fmt: skip
-    H = None if r["H"] is None else A @ r["H"]
+    r = register(u8, None, float(q.gsd) / g, conf.get("acceptance") or {}, c, map_feats=(mxy, md),
+                 gsd_m=float(q.gsd), map_gsd_m=g, tests_before=q.tests_before, area=area)  # fmt: skip
+    H = None if r["H"] is None else G @ r["H"]
     rec = {"ran": True, "candidates": int(r["tests"]), "accepted": r["accepted"],
-           "tests_before": int(q.tests_before), "log10_nfa": r["log10_nfa"], "inliers": r["inliers"], "matches": r["matches"],
-           "angle_deg": r["angle_deg"], "map_px": int(m_u8.size),
+           "tests_before": int(q.tests_before), "log10_nfa": r["log10_nfa"], "inliers": r["inliers"],
+           "matches": r["matches"], "angle_deg": r["angle_deg"], "map_px": int(area),
+           "map_keypoints": len(mxy),
            "reason": "" if r["decision"] is None else r["decision"].get("reason", ""),
            "seconds": time.perf_counter() - t0}  # fmt: skip
     if r["accepted"] and H is not None:
