@@ -38,7 +38,10 @@ DEFAULTS: dict[str, Any] = {
     "thin_px": 36.0,  # one match per query cell of this side (nearby patches overlap: dependent)
     "max_angle_deg": 7.0,  # rigid: largest rotation left after the query's rotation step
     "reproj_px": 3.0,  # RANSAC threshold (map px)
+    "max_hypothesis_matches": 200,  # a large query's hypotheses: its most similar thinned matches
     "nfa_cap_px": 6.0,  # residuals above this count as misses in the NFA (a pose certified to it)
+    "log_nfa_max": -2.0,  # accept below this log10 NFA (a source run on every query nothing else
+    # accepted: 0.01 expected false alarms a query, not the acceptance's 1)
     "map_window_px": 1024,  # map features by windows of this side (each with its own max_kp)
     "exact_max": 2e7,  # query x map descriptor products above which the search is approximate
     "nprobe": 16,  # approximate search: inverted lists visited (faiss IVF, 4 sqrt(n) lists)
@@ -176,14 +179,16 @@ def descriptors(mim: np.ndarray, valid: np.ndarray, xy: np.ndarray, conf: dict[s
     no, nc, patch = c["norient"], int(c["cells"]), int(c["patch"])
     h, w = mim.shape
     m = np.where(valid, mim, 255).astype(np.uint8)
-    integ = np.stack([cv2.integral((m == o).view(np.uint8), sdepth=cv2.CV_32S) for o in range(no)], -1)
     edges = np.round(np.linspace(-patch / 2, patch / 2, nc + 1)).astype(int)
     x0 = np.round(xy[:, 0]).astype(int)[:, None] + edges[None, :]  # (n, nc+1)
     y0 = np.round(xy[:, 1]).astype(int)[:, None] + edges[None, :]
     xc, yc = np.clip(x0, 0, w), np.clip(y0, 0, h)
     ya, yb = yc[:, :-1, None], yc[:, 1:, None]  # (n, nc, 1) rows of cells
     xa, xb = xc[:, None, :-1], xc[:, None, 1:]  # (n, 1, nc)
-    d = integ[yb, xb] - integ[ya, xb] - integ[yb, xa] + integ[ya, xa]  # (n, nc, nc, no)
+    d = np.empty((len(xy), nc, nc, no), np.float32)
+    for o in range(no):  # box sums of each orientation's indicator (integral image)
+        integ = cv2.integral((m == o).view(np.uint8), sdepth=cv2.CV_32S)
+        d[..., o] = integ[yb, xb] - integ[ya, xb] - integ[yb, xa] + integ[ya, xa]
     d = d.reshape(len(xy), -1)
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
 
@@ -224,7 +229,7 @@ def map_features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.n
 class MapMatcher:
     """Nearest map descriptor of each query descriptor (largest dot product of unit vectors):
     exact by chunks while queries x map products stay below ``exact_max``, else a faiss IVF index
-    (inner product, ``4 sqrt(n)`` lists, ``nprobe`` visited, k-means seeded) built once per map."""
+    (inner product, ``4 sqrt(n)`` lists (at most n / 39), ``nprobe`` visited, k-means seeded) built once per map."""
 
     def __init__(self, md: np.ndarray, conf: dict[str, Any]) -> None:
         c = rift_conf(conf)
@@ -238,7 +243,7 @@ class MapMatcher:
             import faiss
 
             n, d = self.md.shape
-            nlist = max(16, int(4 * math.sqrt(n)))
+            nlist = max(1, min(int(4 * math.sqrt(n)), n // 39))  # faiss: >= 39 points a list
             quant = faiss.IndexFlatIP(d)
             ivf = faiss.IndexIVFFlat(quant, d, nlist, faiss.METRIC_INNER_PRODUCT)
             ivf.cp.seed = int(self._conf["seed"])
@@ -415,6 +420,7 @@ def register(
     c = rift_conf(conf)
     mxy, md = map_feats if map_feats is not None else map_features(map_u8, c)
     mm = MapMatcher(md, c)
+    acc = {**acc_conf, "log_nfa_max": min(float(acc_conf.get("log_nfa_max", 0.0)), float(c["log_nfa_max"]))}
     area = float((map_u8 > 0).sum()) if area is None else float(area)
     n_rot = int(c["rotations"])
     h, w = query_u8.shape
@@ -430,7 +436,11 @@ def register(
         if len(pairs) < 6:
             continue
         qc, m = qxy[pairs[:, 0]], mxy[pairs[:, 1]]
-        Hc = rigid_ransac(qc, m, c["reproj_px"], c["max_angle_deg"])
+        top = slice(None)  # hypotheses from the most similar matches only: O(n^2) pairs x n
+        if len(pairs) > c["max_hypothesis_matches"]:
+            sim = np.einsum("ij,ij->i", qd[pairs[:, 0]], md[pairs[:, 1]])
+            top = np.sort(np.argsort(-sim)[: int(c["max_hypothesis_matches"])])
+        Hc = rigid_ransac(qc[top], m[top], c["reproj_px"], c["max_angle_deg"])
         if Hc is None:
             continue
         Ainv = np.linalg.inv(A)
@@ -440,7 +450,7 @@ def register(
         inl = res <= c["reproj_px"]
         capped = np.where(res <= c["nfa_cap_px"], res, 1e9)  # a miss: p = 1, n unchanged
         dec = acceptance.decide(to_m @ H, capped, int(inl.sum()), area, w, h,
-                                gsd_m if gsd_m is not None else scale * map_gsd_m, acc_conf,
+                                gsd_m if gsd_m is not None else scale * map_gsd_m, acc,
                                 n_candidates=n_rot + int(tests_before),
                                 inlier_q_xy=q[inl])  # fmt: skip
         lnfa = float(dec.get("log10_nfa", math.inf))
