@@ -35,6 +35,7 @@ DEFAULTS: dict[str, Any] = {
     "patch": 72,  # descriptor patch side (px, at the map GSD)
     "cells": 6,  # patch cells per side
     "rotations": 36,  # query rotations over 360 deg (MIM histograms are sensitive to rotation)
+    "candidates": 3,  # nearest map descriptors per query descriptor (1: mutual nearest only)
     "thin_px": 36.0,  # one match per query cell of this side (nearby patches overlap: dependent)
     "max_angle_deg": 7.0,  # rigid: largest rotation left after the query's rotation step
     "reproj_px": 3.0,  # RANSAC threshold (map px)
@@ -46,6 +47,7 @@ DEFAULTS: dict[str, Any] = {
     "exact_max": 2e7,  # query x map descriptor products above which the search is approximate
     "nprobe": 16,  # approximate search: inverted lists visited (faiss IVF, 4 sqrt(n) lists)
     "seed": 0,  # the approximate index's k-means
+    "max_upsample": 1.5,  # query enlarged at most this much to the map's GSD, else the map shrunk
     "max_map_px": 16_000_000,  # the source is not run on larger maps (at the query's GSD)
 }
 
@@ -253,22 +255,31 @@ class MapMatcher:
             self._ivf = ivf
         return self._ivf
 
-    def nearest(self, dq: np.ndarray, chunk: int = 4096) -> np.ndarray:
-        """Index of the nearest map descriptor of each query descriptor."""
+    def nearest(self, dq: np.ndarray, k: int = 1, chunk: int = 4096) -> np.ndarray:
+        """Indices (n,) of the nearest map descriptor of each query descriptor; (n, k) of the k
+        nearest (unordered) when ``k`` > 1."""
+        k = min(k, len(self.md))
         if len(dq) * len(self.md) <= self.exact_max:
-            return np.concatenate([np.argmax(dq[a : a + chunk] @ self.md.T, axis=1)
-                                   for a in range(0, len(dq), chunk)])  # fmt: skip
-        _, idx = self._index().search(np.ascontiguousarray(dq, np.float32), 1)
-        return np.maximum(idx[:, 0], 0)
+            out = []
+            for a in range(0, len(dq), chunk):
+                s = dq[a : a + chunk] @ self.md.T
+                out.append(np.argmax(s, axis=1) if k == 1 else np.argpartition(-s, k - 1, axis=1)[:, :k])
+            return np.concatenate(out)
+        _, idx = self._index().search(np.ascontiguousarray(dq, np.float32), k)
+        idx = np.maximum(idx, 0)
+        return idx[:, 0] if k == 1 else idx
 
 
-def match(dq: np.ndarray, dm: np.ndarray | MapMatcher) -> np.ndarray:
-    """(k, 2) index pairs (query, map) of mutual nearest neighbours: each query descriptor's
-    nearest map descriptor (``MapMatcher``), kept when that map descriptor's nearest query
-    descriptor is it."""
+def match(dq: np.ndarray, dm: np.ndarray | MapMatcher, k: int = 1) -> np.ndarray:
+    """(n, 2) index pairs (query, map). ``k`` = 1: mutual nearest neighbours (each query
+    descriptor's nearest map descriptor, kept when that map descriptor's nearest query descriptor
+    is it); ``k`` > 1: each query descriptor with each of its k nearest map descriptors."""
     mm = dm if isinstance(dm, MapMatcher) else MapMatcher(dm, {})
     if len(dq) == 0 or len(mm.md) < 2:
         return np.zeros((0, 2), int)
+    if k > 1:
+        idx = mm.nearest(dq, k)
+        return np.c_[np.repeat(np.arange(len(dq)), idx.shape[1]), idx.ravel()]
     nn = mm.nearest(dq)
     hit, inv = np.unique(nn, return_inverse=True)
     back = np.argmax(mm.md[hit] @ dq.T, axis=1)  # each hit map descriptor's nearest query
@@ -278,17 +289,27 @@ def match(dq: np.ndarray, dm: np.ndarray | MapMatcher) -> np.ndarray:
 
 
 def thin(pairs: np.ndarray, qxy: np.ndarray, qd: np.ndarray, md: np.ndarray,
-         cell_px: float) -> np.ndarray:
-    """At most one match (the most similar) per query cell of ``cell_px``: the descriptors of
-    nearby keypoints share most of their patch, so their matches are not independent tests."""
-    if cell_px <= 0 or len(pairs) == 0:
-        return pairs
+         cell_px: float, per_cell: int = 1) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """At most ``per_cell`` matches (the most similar) per query cell of ``cell_px``: the
+    descriptors of nearby keypoints share most of their patch, so their matches are not
+    independent tests; the cell is the test (``cell_min``). Returns the pairs and their cell ids."""
+    if len(pairs) == 0:
+        return pairs, np.zeros(0, np.int64)
     sim = np.einsum("ij,ij->i", qd[pairs[:, 0]], md[pairs[:, 1]])
-    cell = np.floor(qxy[pairs[:, 0]] / cell_px).astype(np.int64)
+    cell = np.floor(qxy[pairs[:, 0]] / max(cell_px, 1e-9)).astype(np.int64)
     key = cell[:, 0] * 1_000_003 + cell[:, 1]
     order = np.lexsort((-sim, key))
-    first = np.r_[True, key[order][1:] != key[order][:-1]]
-    return pairs[np.sort(order[first])]
+    ks = key[order]
+    rank = np.arange(len(order)) - np.searchsorted(ks, ks)
+    keep = np.sort(order[rank < per_cell])
+    return pairs[keep], key[keep]
+
+
+def cell_min(res: np.ndarray, cell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per cell: the smallest residual of its candidates and that candidate's index."""
+    order = np.lexsort((res, cell))
+    first = order[np.r_[True, cell[order][1:] != cell[order][:-1]]]
+    return res[first], first
 
 
 def similarity_lsq(q: np.ndarray, m: np.ndarray, with_scale: bool = True) -> np.ndarray:
@@ -420,6 +441,7 @@ def register(
     c = rift_conf(conf)
     mxy, md = map_feats if map_feats is not None else map_features(map_u8, c)
     mm = MapMatcher(md, c)
+    kc = int(c["candidates"])
     acc = {**acc_conf, "log_nfa_max": min(float(acc_conf.get("log_nfa_max", 0.0)), float(c["log_nfa_max"]))}
     area = float((map_u8 > 0).sum()) if area is None else float(area)
     n_rot = int(c["rotations"])
@@ -428,12 +450,12 @@ def register(
     best: dict[str, Any] = {"accepted": False, "H": None, "log10_nfa": math.inf, "inliers": 0,
                             "matches": 0, "tests": n_rot, "angle_deg": None, "decision": None}  # fmt: skip
     for angle, qxy, qd, A in rotated_features(query_u8, scale, c):
-        pairs = match(qd, mm)
+        pairs = match(qd, mm, kc)
         if len(pairs) < 6:
             continue
         qc_all, m_all = qxy[pairs[:, 0]], mxy[pairs[:, 1]]  # canvas px (map GSD), map px
-        pairs = thin(pairs, qxy, qd, md, float(c["thin_px"]))
-        if len(pairs) < 6:
+        pairs, cell = thin(pairs, qxy, qd, md, float(c["thin_px"]), kc)
+        if len(np.unique(cell)) < 6:
             continue
         qc, m = qxy[pairs[:, 0]], mxy[pairs[:, 1]]
         top = slice(None)  # hypotheses from the most similar matches only: O(n^2) pairs x n
@@ -446,10 +468,12 @@ def register(
         Ainv = np.linalg.inv(A)
         q = (np.c_[qc, np.ones(len(qc))] @ Ainv.T)[:, :2]  # query px
         H = Hc @ A
-        res = np.linalg.norm((np.c_[q, np.ones(len(q))] @ H.T)[:, :2] - m, axis=1)
+        res, at = cell_min(np.linalg.norm((np.c_[q, np.ones(len(q))] @ H.T)[:, :2] - m, axis=1), cell)
+        q = q[at]
         inl = res <= c["reproj_px"]
         capped = np.where(res <= c["nfa_cap_px"], res, 1e9)  # a miss: p = 1, n unchanged
-        dec = acceptance.decide(to_m @ H, capped, int(inl.sum()), area, w, h,
+        # a cell's best of k candidates lands within e of chance with probability k pi e^2 / area
+        dec = acceptance.decide(to_m @ H, capped, int(inl.sum()), area / kc, w, h,
                                 gsd_m if gsd_m is not None else scale * map_gsd_m, acc,
                                 n_candidates=n_rot + int(tests_before),
                                 inlier_q_xy=q[inl])  # fmt: skip
@@ -458,7 +482,7 @@ def register(
         if best["decision"] is None or key > (bool(best["accepted"]), -best["log10_nfa"]):
             H = refit(Hc, qc_all, m_all, c["reproj_px"]) @ A
             best.update(accepted=bool(dec["accepted"]), H=H, log10_nfa=lnfa,
-                        inliers=int(inl.sum()), matches=len(pairs), angle_deg=angle, decision=dec)  # fmt: skip
+                        inliers=int(inl.sum()), matches=len(res), angle_deg=angle, decision=dec)  # fmt: skip
     best["lowest_log10_nfa"] = best["log10_nfa"]
     return best
 
@@ -529,7 +553,9 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]],
     why = ("the query's GSD is unknown" if q.gsd is None else
            "no orthophoto" if view.read_window is None else "")  # fmt: skip
     b = tuple(float(v) for v in view.source.bounds)
-    g = max(float(view.source.gsd_m), float(q.gsd or 0.0))
+    g = float(view.source.gsd_m)  # the query resampled to the map's feature GSD (or level) ...
+    if float(q.gsd or 0.0) > c["max_upsample"] * g:  # ... unless that enlarges it much: the map
+        g = float(q.gsd)  # shrunk to the query's GSD instead
     if not why and (b[2] - b[0]) * (b[3] - b[1]) / g**2 > c["max_map_px"]:
         why = f"map larger than max_map_px ({c['max_map_px']:.0f}) at the query's GSD"
     if why:
