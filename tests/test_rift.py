@@ -181,3 +181,11 @@ def test_approximate_map_search_finds_most_exact_neighbours():
     approx = rift.MapMatcher(md, {"exact_max": 0}).nearest(qd)
     assert len(md) > 1000
     assert (exact == approx).mean() > 0.8
+
+
+@pytest.mark.parametrize("value", [0, 1, 128])
+def test_featureless_query_is_rejected_without_error(value):
+    """A constant (or all-nodata) query has no keypoints: rejected, never an exception."""
+    q = np.full((120, 100), value, np.uint8)
+    r = rift.register(q, _scene(1), 1.0, _acc(), {})
+    assert not r["accepted"]

@@ -191,7 +191,7 @@ def descriptors(mim: np.ndarray, valid: np.ndarray, xy: np.ndarray, conf: dict[s
     for o in range(no):  # box sums of each orientation's indicator (integral image)
         integ = cv2.integral((m == o).view(np.uint8), sdepth=cv2.CV_32S)
         d[..., o] = integ[yb, xb] - integ[ya, xb] - integ[yb, xa] + integ[ya, xa]
-    d = d.reshape(len(xy), -1)
+    d = d.reshape(len(xy), nc * nc * no)
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
 
 
