@@ -44,8 +44,8 @@ DEFAULTS: dict[str, Any] = {
     "log_nfa_max": -2.0,  # accept below this log10 NFA (a source run on every query nothing else
     # accepted: 0.01 expected false alarms a query, not the acceptance's 1)
     "map_window_px": 1024,  # map features by windows of this side (each with its own max_kp)
-    "exact_max": 2e7,  # query x map descriptor products above which the search is approximate
-    "nprobe": 16,  # approximate search: inverted lists visited (faiss IVF, 4 sqrt(n) lists)
+    "exact_max": 2e6,  # query x map descriptor products above which the search is approximate
+    "nprobe": 64,  # approximate search: inverted lists visited (faiss IVF, 4 sqrt(n) lists)
     "seed": 0,  # the approximate index's k-means
     "max_upsample": 1.5,  # query enlarged at most this much to the map's GSD, else the map shrunk
     "max_map_px": 16_000_000,  # the source is not run on larger maps (at the query's GSD)
