@@ -326,6 +326,8 @@ METHODS: dict[str, dict[str, Any]] = {
     "wf_rift_off": {"pipeline": {"rift": {"enabled": False}}, "bands": 1},
     "wf_rift_k1": {"pipeline": {"rift": {"enabled": True, "candidates": 1}}, "bands": 1},  # mutual nearest
     "src_rift_k1": {"rift": {"candidates": 1}},
+    "wf_rift_k1_refined": {"pipeline": {"rift": {"enabled": True, "candidates": 1}}, "bands": 1,
+                           "refine": {}},  # + the workflow's refinement stage  # fmt: skip
 }
 _RIFT_MAPS: dict[tuple[str, str], Any] = {}  # (scene, conf) -> map features (built once)
 
