@@ -291,7 +291,7 @@ METHODS: dict[str, dict[str, Any]] = {
     # the workflow's query stage exactly: `band: auto` (nearest 1200 nm: the ~1.6 um band here)
     # and `bands: auto` (+ the band nearest 2200 nm) -- the workflow default; and `bands: one`
     "wf_default": {"pipeline": {}, "bands": "auto"},
-    "wf_rift_off": {"pipeline": {"rift": {"enabled": False}}, "bands": "auto"},  # before rift was a default
+    "wf_rift": {"pipeline": {"rift": {"enabled": True}}, "bands": "auto"},  # + the opt-in rift source
     # small queries (georeg.register.small, register.small): off / on whatever the config says
     "wf_nosmall": {"pipeline": {"small": {"enabled": False}}, "bands": "auto"},
     "wf_small": {"pipeline": {"small": {"enabled": True}}, "bands": "auto"},  # dense Hough windows

@@ -203,6 +203,11 @@ def features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarr
     return xy, descriptors(mim, valid, xy, conf).astype(np.float32)
 
 
+def _in_core(xy: np.ndarray, c0: float, r0: float, side: int) -> np.ndarray:
+    """Points (col, row) inside the window core [c0, c0 + side) x [r0, r0 + side)."""
+    return (xy[:, 0] >= c0) & (xy[:, 0] < c0 + side) & (xy[:, 1] >= r0) & (xy[:, 1] < r0 + side)
+
+
 def map_features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     """``features`` of a map by windows of ``map_window_px`` (each padded by a patch, keypoints
     kept in its core, at most ``max_kp`` each): the keypoint density per area does not fall as
@@ -220,7 +225,7 @@ def map_features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.n
                 continue
             xy, d = features(win, c)
             xy = xy + (ca, ra)
-            core = (xy[:, 0] >= c0) & (xy[:, 0] < c0 + side) & (xy[:, 1] >= r0) & (xy[:, 1] < r0 + side)
+            core = _in_core(xy, c0, r0, side)
             xys.append(xy[core])
             ds.append(d[core])
     if not xys:
@@ -289,12 +294,13 @@ def match(dq: np.ndarray, dm: np.ndarray | MapMatcher, k: int = 1) -> np.ndarray
 
 
 def thin(pairs: np.ndarray, qxy: np.ndarray, qd: np.ndarray, md: np.ndarray,
-         cell_px: float, per_cell: int = 1) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+         cell_px: float, per_cell: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """At most ``per_cell`` matches (the most similar) per query cell of ``cell_px``: the
     descriptors of nearby keypoints share most of their patch, so their matches are not
-    independent tests; the cell is the test (``cell_min``). Returns the pairs and their cell ids."""
+    independent tests; the cell is the test (``cell_min``). Returns the pairs, their cell ids
+    and their descriptor similarities."""
     if len(pairs) == 0:
-        return pairs, np.zeros(0, np.int64)
+        return pairs, np.zeros(0, np.int64), np.zeros(0, np.float32)
     sim = np.einsum("ij,ij->i", qd[pairs[:, 0]], md[pairs[:, 1]])
     cell = np.floor(qxy[pairs[:, 0]] / max(cell_px, 1e-9)).astype(np.int64)
     key = cell[:, 0] * 1_000_003 + cell[:, 1]
@@ -302,7 +308,7 @@ def thin(pairs: np.ndarray, qxy: np.ndarray, qd: np.ndarray, md: np.ndarray,
     ks = key[order]
     rank = np.arange(len(order)) - np.searchsorted(ks, ks)
     keep = np.sort(order[rank < per_cell])
-    return pairs[keep], key[keep]
+    return pairs[keep], key[keep], sim[keep]
 
 
 def cell_min(res: np.ndarray, cell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -432,10 +438,13 @@ def register(
     area: float | None = None,
 ) -> dict[str, Any]:
     """The query (uint8, 0 = nodata) against the map (uint8, 0 = nodata): ``scale`` = map px per
-    query px (the known GSD ratio). Every rotation's mutual matches, thinned -> rigid fit (``rigid_ransac``) ->
-    ``acceptance.decide`` (residuals of all matches in map px, area = the map's valid pixels,
-    tests = the rotations + ``tests_before``, the tests of the sources that ran before). Returns ``accepted``, ``H`` (query px -> map px), ``log10_nfa``,
-    ``inliers``, ``matches``, ``tests``, ``angle_deg``, ``lowest_log10_nfa`` and ``decision``."""
+    query px (the known GSD ratio); ``map_feats`` / ``area``: the map's features and valid pixels
+    when ``map_u8`` is None. Every rotation's matches (``candidates`` per query keypoint), thinned
+    per query cell -> rigid fit (``rigid_ransac``) -> ``acceptance.decide`` below ``log_nfa_max``
+    (each cell's best residual in map px, area = the map's valid pixels / candidates, tests = the
+    rotations + ``tests_before``, the tests of the sources that ran before). Returns ``accepted``,
+    ``H`` (query px -> map px), ``log10_nfa``, ``inliers``, ``matches`` (cells), ``tests``,
+    ``angle_deg``, ``lowest_log10_nfa`` and ``decision``."""
     from georeg.register import acceptance
 
     c = rift_conf(conf)
@@ -454,13 +463,12 @@ def register(
         if len(pairs) < 6:
             continue
         qc_all, m_all = qxy[pairs[:, 0]], mxy[pairs[:, 1]]  # canvas px (map GSD), map px
-        pairs, cell = thin(pairs, qxy, qd, md, float(c["thin_px"]), kc)
+        pairs, cell, sim = thin(pairs, qxy, qd, md, float(c["thin_px"]), kc)
         if len(np.unique(cell)) < 6:
             continue
         qc, m = qxy[pairs[:, 0]], mxy[pairs[:, 1]]
         top = slice(None)  # hypotheses from the most similar matches only: O(n^2) pairs x n
         if len(pairs) > c["max_hypothesis_matches"]:
-            sim = np.einsum("ij,ij->i", qd[pairs[:, 0]], md[pairs[:, 1]])
             top = np.sort(np.argsort(-sim)[: int(c["max_hypothesis_matches"])])
         Hc = rigid_ransac(qc[top], m[top], c["reproj_px"], c["max_angle_deg"])
         if Hc is None:
@@ -493,7 +501,7 @@ def read_map_features(read_window: Any, bounds: tuple[float, float, float, float
     of ``map_window_px`` (each padded by a patch; keypoints kept in its core): keypoints in the
     working grid's px (origin the bounds' top left, north-up), descriptors, the valid area (px)
     and the 3 x 3 working px -> map x, y. Memory is bounded by one window. None: nothing read."""
-    from georeg.register.dense import window_u8
+    from georeg.register.dense import _shrink, window_u8
 
     c = rift_conf(conf)
     G = np.array([[g, 0, bounds[0] + g / 2], [0, -g, bounds[3] - g / 2], [0, 0, 1.0]])
@@ -513,24 +521,19 @@ def read_map_features(read_window: Any, bounds: tuple[float, float, float, float
             u8 = window_u8(gray)
             f = min(1.0, m_px / g)  # the orthophoto shrunk to the working GSD when finer
             if f < 1.0:
-                size = (max(1, round(u8.shape[1] * f)), max(1, round(u8.shape[0] * f)))
-                ok = cv2.resize((u8 > 0).astype(np.uint8), size, interpolation=cv2.INTER_NEAREST)
-                u8 = np.where(ok > 0, np.maximum(cv2.resize(u8, size, interpolation=cv2.INTER_AREA), 1), 0)
+                shrunk, ok = _shrink(u8, u8 > 0, f)
+                u8 = np.where(ok, np.maximum(np.round(shrunk), 1), 0).astype(np.uint8)
                 A = A @ np.array([[1 / f, 0, 0.5 / f - 0.5], [0, 1 / f, 0.5 / f - 0.5], [0, 0, 1.0]])
-            u8 = u8.astype(np.uint8)
             if not u8.any():
                 continue
             T = np.linalg.inv(G) @ A  # window px -> working px
             xy, d = features(u8, c)
             wxy = (np.c_[xy, np.ones(len(xy))] @ T.T)[:, :2]
-            core = ((wxy[:, 0] >= c0 - 0.5) & (wxy[:, 0] < c0 + side - 0.5)
-                    & (wxy[:, 1] >= r0 - 0.5) & (wxy[:, 1] < r0 + side - 0.5))  # fmt: skip
+            core = _in_core(wxy, c0 - 0.5, r0 - 0.5, side)
             xys.append(wxy[core])
             ds.append(d[core])
             rr, cc = np.nonzero(u8)  # the window's valid px inside its core (working px)
-            v = np.c_[cc, rr, np.ones(len(rr))] @ T.T
-            area += float(((v[:, 0] >= c0 - 0.5) & (v[:, 0] < c0 + side - 0.5)
-                           & (v[:, 1] >= r0 - 0.5) & (v[:, 1] < r0 + side - 0.5)).sum())  # fmt: skip
+            area += float(_in_core(np.c_[cc, rr, np.ones(len(rr))] @ T.T, c0 - 0.5, r0 - 0.5, side).sum())
     if not xys:
         return None
     return np.vstack(xys), np.vstack(ds), area, G
@@ -539,8 +542,9 @@ def read_map_features(read_window: Any, bounds: tuple[float, float, float, float
 def source(q: Any, view: Any, parts: list[dict[str, Any]],
            conf: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, Any]]:  # fmt: skip
     """Source ``rift`` (``register.rift``; ``georeg.register.fuse.SOURCES``): the query's primary
-    band against the whole orthophoto (read by windows through ``view.read_window`` at the
-    query's GSD when the map is finer: ``read_map_features``), ``register``; an accepted pose
+    band against the whole orthophoto (read by windows through ``view.read_window`` at the map's
+    feature GSD, or the query's when it is > ``max_upsample`` coarser: ``read_map_features``),
+    ``register``; an accepted pose
     becomes one more (whole-query) part. Not run without the query's GSD, without an orthophoto,
     or above ``max_map_px`` map pixels at that GSD (the cost grows with the map). Returns the
     parts and the record."""
