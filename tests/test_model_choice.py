@@ -1,10 +1,10 @@
-"""The model of an accepted fit chosen by leave-one-out CV (georeg.register.model_choice)."""
+"""The model of an accepted fit chosen by leave-one-out CV (georeg.register.matching.choose_model)."""
 
 import numpy as np
 import pytest
 
 from georeg.register import matching
-from georeg.register.model_choice import choose_model
+from georeg.register.matching import choose_model
 from georeg.register.search import final_model
 
 G = 10.0  # map units per map px

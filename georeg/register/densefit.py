@@ -21,8 +21,7 @@ from typing import Any
 import numpy as np
 
 from georeg.register.geolocation import apply_h, ground_px
-from georeg.register.matching import similarity_lsq
-from georeg.register.model_choice import one_se_choice
+from georeg.register.matching import one_se_choice, similarity_lsq
 from georeg.register.tiepoints import (
     cfog,
     consistent,

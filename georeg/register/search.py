@@ -17,7 +17,7 @@ import numpy as np
 
 from georeg.index.features import dequantize, detect_and_describe, resample
 from georeg.io.prior import prior_bounds, prior_record
-from georeg.register import acceptance, level, matching, model_choice
+from georeg.register import acceptance, level, matching
 
 log = logging.getLogger(__name__)
 
@@ -493,7 +493,7 @@ def final_model(
     rec: dict[str, Any],
 ) -> matching.HomographyFit:
     """An accepted fit refitted to its inliers with the model chosen by leave-one-out CV
-    (``register.ransac.final_model: loo``; georeg.register.model_choice), the same inliers,
+    (``register.ransac.final_model: loo``; georeg.register.matching.choose_model), the same inliers,
     residuals re-measured; ``rec["final_model"]`` says which model and why. ``ransac`` (or a
     model that cannot be cross-validated) keeps the fit as it is."""
     how = str(ransac_conf.get("final_model", "loo"))
@@ -501,7 +501,7 @@ def final_model(
         raise ValueError(f"unknown register.ransac.final_model {how!r} (loo | ransac)")
     if how == "ransac":
         return fit
-    H, info = model_choice.choose_model(m.q_xy[fit.inliers], m.m_xy[fit.inliers], map_px_m)
+    H, info = matching.choose_model(m.q_xy[fit.inliers], m.m_xy[fit.inliers], map_px_m)
     rec["final_model"] = info
     if H is None:
         return fit
