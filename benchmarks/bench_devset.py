@@ -355,6 +355,7 @@ def run_rift(q: bx.Query, sc: bx.Scene, spec: dict[str, Any], seed: int) -> dict
     return {"matches": r["matches"], "inliers": r["inliers"], "accepted": r["accepted"], "H": H,
             "log10_nfa": r["log10_nfa"], "tests": r["tests"], "candidates": r["tests"],
             "angle_deg": r["angle_deg"], "map_cpu_seconds": map_s,
+            "null_log10_nfa": r["null_log10_nfa"],
             "seconds": time.perf_counter() - t0}  # fmt: skip
 
 
@@ -485,6 +486,7 @@ def main(argv: list[str] | None = None) -> int:
                    "seconds": res["seconds"], "cpu_seconds": cpu,
                    "candidates": res.get("candidates"), "tests": res.get("tests"),
                    "places": len(getattr(q, "alts", []) or []),
+                   "null_log10_nfa": res.get("null_log10_nfa"),
                    "H": None if res.get("H") is None else np.asarray(res["H"]).tolist()}  # fmt: skip
             rows[name].append(rec)
             append_record(partial, name, rec)

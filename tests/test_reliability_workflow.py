@@ -123,6 +123,19 @@ def map_config(work: Path) -> Path:
     return p
 
 
+def _tail(path: Path, n: int = 4000) -> str:
+    return path.read_text(errors="replace")[-n:] if path.exists() else f"({path} missing)"
+
+
+def _ps() -> str:
+    """The machine's busiest processes (a hung run says what it waits on, and what loads it)."""
+    try:
+        return subprocess.run(["ps", "-eo", "pid,ppid,stat,etime,time,pcpu,args", "--sort=-pcpu"],
+                              capture_output=True, text=True, timeout=10).stdout[:4000]  # fmt: skip
+    except (OSError, subprocess.SubprocessError) as e:
+        return f"(ps failed: {e})"
+
+
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     root = tmp_path_factory.mktemp("reliability")
@@ -155,8 +168,16 @@ def runs(tmp_path_factory):
     left = {
         str(p.relative_to(b)): p.read_bytes() for p in (b / "results").rglob("*") if p.is_file()
     }
-    for p in (pa, pc):
-        p.wait(timeout=600)
+    for k, p in (("a", pa), ("c", pc)):
+        try:
+            p.wait(timeout=900)
+        except subprocess.TimeoutExpired:
+            for q in (pa, pc):
+                q.kill()
+            for f in log.values():
+                f.close()
+            pytest.fail(f"run {k.upper()} still running after 900 s; its log ends:\n"
+                        + _tail(root / f"{k}.log") + "\nprocesses:\n" + _ps())  # fmt: skip
     for f in log.values():
         f.close()
     # rerun B: after a crash Snakemake's lock stays, so --unlock first; the killed job reruns

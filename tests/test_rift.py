@@ -189,3 +189,44 @@ def test_featureless_query_is_rejected_without_error(value):
     q = np.full((120, 100), value, np.uint8)
     r = rift.register(q, _scene(1), 1.0, _acc(), {})
     assert not r["accepted"]
+
+
+def test_null_of_far_rotations_wraps_and_skips_the_pose():
+    per_rot = [(0.0, -9.0), (10.0, -7.0), (350.0, -6.0), (30.0, -1.5), (180.0, 0.5)]
+    assert rift._null_log_nfa(per_rot, 0.0) == -1.5  # 10 and 350 deg are the pose's neighbours
+    assert rift._null_log_nfa(per_rot, 180.0) == -9.0
+    assert rift._null_log_nfa(per_rot, None) == math.inf
+    assert rift._null_log_nfa([(0.0, -9.0)], 0.0) == math.inf
+
+
+def _pucallpa(name: str):
+    """A query of benchmarks/bench_devset.py's Landsat Pucallpa set and its map (scene)."""
+    import sys
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_devset as bd
+
+    scenes, queries = bd.build_pucallpa(11)
+    q = next(x for x in queries if x.name == name)
+    return q, next(s for s in scenes if s.name == q.map_scene)
+
+
+def test_pucallpa_blanked_map_rejected_by_the_measured_null(shared_data):
+    """Landsat Pucallpa (bench_devset, tuning half): the 2005 SWIR crop on the 1990 map with the
+    crop's place blanked passes the uniform NFA (log10 -2.5 < -2) but not the null measured on
+    the map (a pose at another rotation reaches -1.0); the same crop on the whole map registers
+    within the benchmark's 5 px."""
+    if not (shared_data / "swir_dates" / "landsat_pucallpa" / "1990.tif").exists():
+        pytest.skip("Landsat Pucallpa absent")
+    q, sc = _pucallpa("puc_2005_on_1990_1_1.6um_blanked")
+    u8 = next(iter(q.bands.values()))
+    off = rift.register(u8, sc.map_gray, q.gsd / sc.map_gsd, _acc(), {"null_margin": 0})
+    assert off["accepted"] and off["log10_nfa"] < -2.0
+    on = rift.register(u8, sc.map_gray, q.gsd / sc.map_gsd, _acc(), {})
+    assert not on["accepted"] and "another rotation" in on["decision"]["reason"]
+    assert on["log10_nfa"] > on["null_log10_nfa"] - rift.DEFAULTS["null_margin"]
+    q, sc = _pucallpa("puc_2005_on_1990_1_1.6um")
+    r = rift.register(next(iter(q.bands.values())), sc.map_gray, q.gsd / sc.map_gsd, _acc(), {})
+    assert r["accepted"], r["decision"]
+    err = np.linalg.norm(matching.apply_h(r["H"], q.truth) - q.truth_map, axis=1)  # map px
+    assert np.median(err) <= 5.0, np.median(err)

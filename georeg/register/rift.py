@@ -43,6 +43,9 @@ DEFAULTS: dict[str, Any] = {
     "nfa_cap_px": 6.0,  # residuals above this count as misses in the NFA (a pose certified to it)
     "log_nfa_max": -2.0,  # accept below this log10 NFA (a source run on every query nothing else
     # accepted: 0.01 expected false alarms a query, not the acceptance's 1)
+    "null_margin": 2.0,  # accept only this many decades below the best pose of a rotation
+    # >= null_far_deg away (a chance alignment of this query on this map: the null measured
+    # where the uniform one of the NFA is optimistic); 2 = log_nfa_max's 0.01 against that null
     "map_window_px": 1024,  # map features by windows of this side (each with its own max_kp)
     "exact_max": 2e6,  # query x map descriptor products above which the search is approximate
     "nprobe": 64,  # approximate search: inverted lists visited (faiss IVF, 4 sqrt(n) lists)
@@ -50,6 +53,11 @@ DEFAULTS: dict[str, Any] = {
     "max_upsample": 1.5,  # query enlarged at most this much to the map's GSD, else the map shrunk
     "max_map_px": 16_000_000,  # the source is not run on larger maps (at the query's GSD)
 }
+
+
+#: rotations this far from the best one are not its pose (the rigid fit takes +-max_angle_deg
+#: around each 10 deg step, so the two neighbouring steps can find the same pose)
+NULL_FAR_DEG = 25.0
 
 
 def rift_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
@@ -458,6 +466,7 @@ def register(
     to_m = np.diag([map_gsd_m, -map_gsd_m, 1.0])  # map px -> north-up map units (handedness)
     best: dict[str, Any] = {"accepted": False, "H": None, "log10_nfa": math.inf, "inliers": 0,
                             "matches": 0, "tests": n_rot, "angle_deg": None, "decision": None}  # fmt: skip
+    per_rot: list[tuple[float, float]] = []  # (angle, log10 NFA) of each rotation's pose
     for angle, qxy, qd, A in rotated_features(query_u8, scale, c):
         pairs = match(qd, mm, kc)
         if len(pairs) < 6:
@@ -486,13 +495,32 @@ def register(
                                 n_candidates=n_rot + int(tests_before),
                                 inlier_q_xy=q[inl])  # fmt: skip
         lnfa = float(dec.get("log10_nfa", math.inf))
+        per_rot.append((angle, lnfa))
         key = (bool(dec["accepted"]), -lnfa)
         if best["decision"] is None or key > (bool(best["accepted"]), -best["log10_nfa"]):
             H = refit(Hc, qc_all, m_all, c["reproj_px"]) @ A
             best.update(accepted=bool(dec["accepted"]), H=H, log10_nfa=lnfa,
                         inliers=int(inl.sum()), matches=len(res), angle_deg=angle, decision=dec)  # fmt: skip
     best["lowest_log10_nfa"] = best["log10_nfa"]
+    best["null_log10_nfa"] = _null_log_nfa(per_rot, best["angle_deg"])
+    margin = float(c["null_margin"])
+    if best["accepted"] and margin > 0 and best["log10_nfa"] > best["null_log10_nfa"] - margin:
+        best["accepted"] = False
+        best["decision"] = {**best["decision"], "accepted": False, "reason":
+                            f"log10 NFA {best['log10_nfa']:.1f} not {margin:g} below the best "
+                            f"pose at another rotation ({best['null_log10_nfa']:.1f})"}  # fmt: skip
     return best
+
+
+def _null_log_nfa(per_rot: list[tuple[float, float]], angle: float | None, far_deg: float = NULL_FAR_DEG) -> float:
+    """The lowest log10 NFA among the rotations at least ``far_deg`` from ``angle``: their poses
+    are chance alignments of this query on this map, a null measured where the uniform model of
+    the NFA may be optimistic (repeated fields, river bends; Landsat Pucallpa with the query's
+    place blanked: accepted at -2.5 against -1.0 at another rotation). inf when there is none."""
+    if angle is None:
+        return math.inf
+    far = [v for a, v in per_rot if abs((a - angle + 180.0) % 360.0 - 180.0) >= far_deg]
+    return min(far, default=math.inf)
 
 
 def read_map_features(read_window: Any, bounds: tuple[float, float, float, float], g: float,
@@ -575,6 +603,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]],
     H = None if r["H"] is None else G @ r["H"]
     rec = {"ran": True, "candidates": int(r["tests"]), "accepted": r["accepted"],
            "tests_before": int(q.tests_before), "log10_nfa": r["log10_nfa"], "inliers": r["inliers"],
+           "null_log10_nfa": None if math.isinf(r["null_log10_nfa"]) else r["null_log10_nfa"],
            "matches": r["matches"], "angle_deg": r["angle_deg"], "map_px": int(area),
            "map_keypoints": len(mxy),
            "reason": "" if r["decision"] is None else r["decision"].get("reason", ""),
