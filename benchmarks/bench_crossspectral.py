@@ -572,6 +572,7 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
         "H": None if res.get("homography") is None else np.array(res["homography"]),
         "parts": split.get("parts"),
         "level": res.get("level"),
+        "sources": res.get("sources"),
         "whole": split.get("whole_query_searched"),
         "features": split.get("query_features"),
         "part_side": split.get("part_side_map_px"),

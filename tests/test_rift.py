@@ -255,3 +255,17 @@ def test_pucallpa_near_miss_polished_on_the_orthophoto(shared_data):
     H2, rec = rift.polish(u8, H, bd._map_image(sc), {"acceptance": _acc()})
     assert not rec["moved_better"] and rec["refit_kept"]
     assert err(H2) < 4.0, err(H2)
+
+
+def test_a_query_of_few_cells_decides_nothing():
+    """A 100 px crop covers 9-16 cells of 36 px: with ``min_cells`` 16 (the default) its true
+    rotation (12 cells) is not scored (an unrelated map once reached log10 NFA -8 on 9 cells);
+    allowed 6 cells, the same crop registers (the rule, not the matcher, declines it)."""
+    m = _scene(1)
+    q, truth = _query(m, (170.0, 150.0), 37.0, 100)
+    r = rift.register(q, m, 1.0, _acc(), {})
+    assert not r["accepted"]
+    r6 = rift.register(q, m, 1.0, _acc(), {"min_cells": 6, "null_margin": 0})
+    assert r6["accepted"], r6["decision"]
+    pts = np.array([[0, 0], [99, 0], [0, 99], [99, 99]], float)
+    assert np.abs(matching.apply_h(r6["H"], pts) - matching.apply_h(truth, pts)).max() < 3.0

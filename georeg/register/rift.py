@@ -37,6 +37,8 @@ DEFAULTS: dict[str, Any] = {
     "rotations": 36,  # query rotations over 360 deg (MIM histograms are sensitive to rotation)
     "candidates": 3,  # nearest map descriptors per query descriptor (1: mutual nearest only)
     "thin_px": 36.0,  # one match per query cell of this side (nearby patches overlap: dependent)
+    "min_cells": 16,  # fewer matched query cells decide nothing (a 9-cell query on an unrelated
+    # map reached log10 NFA -8 in the cross-spectral protocol; true accepts had >= 18)
     "max_angle_deg": 7.0,  # rigid: largest rotation left after the query's rotation step
     "reproj_px": 3.0,  # RANSAC threshold (map px)
     "max_hypothesis_matches": 200,  # a large query's hypotheses: its most similar thinned matches
@@ -474,7 +476,7 @@ def register(
             continue
         qc_all, m_all = qxy[pairs[:, 0]], mxy[pairs[:, 1]]  # canvas px (map GSD), map px
         pairs, cell, sim = thin(pairs, qxy, qd, md, float(c["thin_px"]), kc)
-        if len(np.unique(cell)) < 6:
+        if len(np.unique(cell)) < c["min_cells"]:
             continue
         qc, m = qxy[pairs[:, 0]], mxy[pairs[:, 1]]
         top = slice(None)  # hypotheses from the most similar matches only: O(n^2) pairs x n
@@ -623,11 +625,13 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]],
                  gsd_m=float(q.gsd), map_gsd_m=g, tests_before=q.tests_before, area=area)  # fmt: skip
     H = None if r["H"] is None else G @ r["H"]
     rec = {"ran": True, "candidates": int(r["tests"]), "accepted": r["accepted"],
-           "tests_before": int(q.tests_before), "log10_nfa": r["log10_nfa"], "inliers": r["inliers"],
+           "tests_before": int(q.tests_before), "inliers": r["inliers"],
+           "log10_nfa": None if math.isinf(r["log10_nfa"]) else r["log10_nfa"],
            "null_log10_nfa": None if math.isinf(r["null_log10_nfa"]) else r["null_log10_nfa"],
            "matches": r["matches"], "angle_deg": r["angle_deg"], "map_px": int(area),
            "map_keypoints": len(mxy),
-           "reason": "" if r["decision"] is None else r["decision"].get("reason", ""),
+           "reason": f"fewer than min_cells ({c['min_cells']}) matched cells at every rotation"
+           if r["decision"] is None else r["decision"].get("reason", ""),
            "seconds": time.perf_counter() - t0}  # fmt: skip
     if r["accepted"] and H is not None and c["polish"]:
         from georeg.register.ortho_check import ortho_conf, window_image
