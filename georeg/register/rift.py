@@ -46,7 +46,7 @@ DEFAULTS: dict[str, Any] = {
     "log_nfa_max": -2.0,  # accept below this log10 NFA (a source run on every query nothing else
     # accepted: 0.01 expected false alarms a query, not the acceptance's 1)
     "null_margin": 2.0,  # accept only this many decades below the best pose of a rotation
-    # >= null_far_deg away (a chance alignment of this query on this map: the null measured
+    # >= NULL_FAR_DEG away (a chance alignment of this query on this map: the null measured
     # where the uniform one of the NFA is optimistic); 2 = log_nfa_max's 0.01 against that null
     "polish": True,  # an accepted pose refit densely to the orthophoto (``polish``)
     "map_window_px": 1024,  # map features by windows of this side (each with its own max_kp)
@@ -455,7 +455,9 @@ def register(
     (each cell's best residual in map px, area = the map's valid pixels / candidates, tests = the
     rotations + ``tests_before``, the tests of the sources that ran before). Returns ``accepted``,
     ``H`` (query px -> map px), ``log10_nfa``, ``inliers``, ``matches`` (cells), ``tests``,
-    ``angle_deg``, ``lowest_log10_nfa`` and ``decision``."""
+    ``angle_deg``, ``lowest_log10_nfa``, ``null_log10_nfa`` (the best pose at a rotation
+    >= ``NULL_FAR_DEG`` away; accepted only ``null_margin`` decades below it) and ``decision``.
+    A rotation with fewer than ``min_cells`` matched cells is not scored."""
     from georeg.register import acceptance
 
     c = rift_conf(conf)
@@ -596,7 +598,8 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]],
     band against the whole orthophoto (read by windows through ``view.read_window`` at the map's
     feature GSD, or the query's when it is > ``max_upsample`` coarser: ``read_map_features``),
     ``register``; an accepted pose
-    becomes one more (whole-query) part. Not run without the query's GSD, without an orthophoto,
+    is refit to the orthophoto around its footprint (``polish``; rejected when a moved pose is
+    better supported) and becomes one more (whole-query) part. Not run without the query's GSD, without an orthophoto,
     or above ``max_map_px`` map pixels at that GSD (the cost grows with the map). Returns the
     parts and the record."""
     import time
