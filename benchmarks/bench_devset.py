@@ -331,17 +331,6 @@ METHODS: dict[str, dict[str, Any]] = {
 _RIFT_MAPS: dict[tuple[str, str], Any] = {}  # (scene, conf) -> map features (built once)
 
 
-def _map_image(sc: bx.Scene):
-    """The scene's map as the orthophoto ``MapImage`` of the fuse step (x = g col, y = -g row)."""
-    from rasterio.transform import Affine
-
-    from georeg.register.tiepoints import MapImage
-
-    g = sc.map_gsd
-    gray = np.where(sc.map_gray > 0, sc.map_gray.astype(np.float32), np.nan)
-    return MapImage(gray, Affine(g, 0.0, -0.5 * g, 0.0, -g, 0.5 * g))
-
-
 def run_rift(q: bx.Query, sc: bx.Scene, spec: dict[str, Any], seed: int) -> dict[str, Any]:
     """georeg.register.rift.register of the query against the whole map (features of the map
     built once per scene and conf: their CPU seconds are recorded as ``map_cpu_seconds`` on the
@@ -365,8 +354,8 @@ def run_rift(q: bx.Query, sc: bx.Scene, spec: dict[str, Any], seed: int) -> dict
     H = None if r["H"] is None else np.diag([g, -g, 1.0]) @ r["H"]  # judged only if accepted
     pol = None
     if r["accepted"] and conf["polish"]:  # as rift.source does with the orthophoto's window
-        H, pol = rift.polish(u8, H, _map_image(sc), reg)
-        r["accepted"] = not pol["moved_better"]
+        H, pol = rift.polish(u8, H, bx.plain_window_reader(sc), reg)
+        r["accepted"] = not (pol and pol["moved_better"])
     return {"matches": r["matches"], "inliers": r["inliers"], "accepted": r["accepted"], "H": H,
             "log10_nfa": r["log10_nfa"], "tests": r["tests"], "candidates": r["tests"],
             "angle_deg": r["angle_deg"], "map_cpu_seconds": map_s,

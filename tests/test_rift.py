@@ -4,6 +4,7 @@ SRIF optical-infrared pair registers within the benchmark's tolerance."""
 
 from __future__ import annotations
 
+import functools
 import math
 
 import cv2
@@ -199,14 +200,20 @@ def test_null_of_far_rotations_wraps_and_skips_the_pose():
     assert rift._null_log_nfa([(0.0, -9.0)], 0.0) == math.inf
 
 
-def _pucallpa(name: str):
-    """A query of benchmarks/bench_devset.py's Landsat Pucallpa set and its map (scene)."""
+@functools.cache
+def _pucallpa_set():
+    """benchmarks/bench_devset.py's Landsat Pucallpa set (scenes, queries), built once."""
     import sys
 
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import bench_devset as bd
 
-    scenes, queries = bd.build_pucallpa(11)
+    return bd.build_pucallpa(11)
+
+
+def _pucallpa(name: str):
+    """A query of the Pucallpa set and its map (scene)."""
+    scenes, queries = _pucallpa_set()
     q = next(x for x in queries if x.name == name)
     return q, next(s for s in scenes if s.name == q.map_scene)
 
@@ -252,7 +259,7 @@ def test_pucallpa_near_miss_polished_on_the_orthophoto(shared_data):
 
     H = np.diag([g, -g, 1.0]) @ r["H"]
     assert err(H) > 5.0  # the near miss this test is about
-    H2, rec = rift.polish(u8, H, bd._map_image(sc), {"acceptance": _acc()})
+    H2, rec = rift.polish(u8, H, bd.bx.plain_window_reader(sc), {"acceptance": _acc()})
     assert not rec["moved_better"] and rec["refit_kept"]
     assert err(H2) < 4.0, err(H2)
 

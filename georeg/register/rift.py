@@ -528,24 +528,29 @@ def _null_log_nfa(per_rot: list[tuple[float, float]], angle: float | None, far_d
     return min(far, default=math.inf)
 
 
-def polish(u8: np.ndarray, H: np.ndarray, ortho: Any, reg_conf: dict[str, Any] | None
-           ) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
+def polish(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, Any] | None
+           ) -> tuple[np.ndarray, dict[str, Any] | None]:  # fmt: skip
     """An accepted pose (query px -> map x, y) refit densely: it rests on a few 36 px cells (7-8
     on small cross-date crops, 4-5 deg off on Landsat Pucallpa), so the orthophoto's CFOG tie
     points over the whole footprint refit it (``ortho_check.verify``: the affine refit, taken
-    when its blocked CV residual is lower and it is checked). ``ortho``: a ``MapImage`` around the
-    footprint. Returns the pose to use and a record; ``record["moved_better"]``: the tie points
-    support a pose moved by a few pixels more than this one (gain < 1), so it is no registration
-    (a wrong place whose cells agree by chance)."""
+    when its blocked CV residual is lower and it is checked). ``read_window``: the orthophoto
+    window reader of the fuse step. Returns the pose to use and a record (None when the
+    footprint misses the orthophoto); ``record["moved_better"]``: the tie points support a pose
+    moved by a few pixels more than this one (gain < 1), so it is no registration (a wrong place
+    whose cells agree by chance)."""
     from georeg.register import ortho_check
 
+    H = np.asarray(H, float)
     oc = {**ortho_check.ortho_conf(reg_conf), "mode": "record"}
-    use, rec = ortho_check.verify(u8, np.asarray(H, float), ortho, oc)
+    img = ortho_check.window_image(read_window, H, u8.shape, oc)
+    if img is None:
+        return H, None
+    use, rec = ortho_check.verify(u8, H, img, oc)
     gain = rec.get("gain")
     out = {"outcome": rec["outcome"], "gain": gain, "tie_points": rec.get("tie_points"),
            "refit_kept": bool((rec.get("refit") or {}).get("kept", False)),
            "moved_better": gain is not None and gain < 1.0}  # fmt: skip
-    return (np.asarray(H, float) if out["moved_better"] else use), out
+    return (H if out["moved_better"] else use), out
 
 
 def read_map_features(read_window: Any, bounds: tuple[float, float, float, float], g: float,
@@ -637,14 +642,10 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]],
            if r["decision"] is None else r["decision"].get("reason", ""),
            "seconds": time.perf_counter() - t0}  # fmt: skip
     if r["accepted"] and H is not None and c["polish"]:
-        from georeg.register.ortho_check import ortho_conf, window_image
-
-        img = window_image(view.read_window, H, u8.shape, ortho_conf(conf))
-        if img is not None:
-            H, rec["polish"] = polish(u8, H, img, conf)
-            if rec["polish"]["moved_better"]:
-                r["accepted"] = rec["accepted"] = False
-                rec["reason"] = "the orthophoto's tie points support a moved pose better (gain < 1)"
+        H, rec["polish"] = polish(u8, H, view.read_window, conf)
+        if rec["polish"] and rec["polish"]["moved_better"]:
+            r["accepted"] = rec["accepted"] = False
+            rec["reason"] = "the orthophoto's tie points support a moved pose better (gain < 1)"
     if r["accepted"] and H is not None:
         part = {"accepted": True, "homography": H.tolist(), "log10_nfa": r["log10_nfa"],
                 "inliers": r["inliers"], "matches": r["matches"], "residual_px": None,
