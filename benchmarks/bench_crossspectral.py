@@ -573,6 +573,7 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
         "parts": split.get("parts"),
         "level": res.get("level"),
         "sources": res.get("sources"),
+        "rift": split.get("rift"),
         "whole": split.get("whole_query_searched"),
         "features": split.get("query_features"),
         "part_side": split.get("part_side_map_px"),
@@ -880,7 +881,7 @@ def main(argv: list[str] | None = None) -> int:
                    "global_fit": res.get("global_fit"), "small_nfa": res.get("small_nfa"),
                    "null_nfa": res.get("null_nfa"), "null_accepted": res.get("null_accepted"),
                    "global_fit_reason": res.get("global_fit_reason"),
-                   "ortho": res.get("ortho"),
+                   "ortho": res.get("ortho"), "rift": res.get("rift"),
                    "null_check": res.get("null_check")}  # fmt: skip
             rows[name].append(rec)
             if a.v:

@@ -360,7 +360,14 @@ def run_rift(q: bx.Query, sc: bx.Scene, spec: dict[str, Any], seed: int) -> dict
             "log10_nfa": r["log10_nfa"], "tests": r["tests"], "candidates": r["tests"],
             "angle_deg": r["angle_deg"], "map_cpu_seconds": map_s,
             "null_log10_nfa": r["null_log10_nfa"], "polish": pol,
-            "seconds": time.perf_counter() - t0}  # fmt: skip
+            "per_rotation": r["per_rotation"], "seconds": time.perf_counter() - t0}  # fmt: skip
+
+
+def _rift_fields(res: dict[str, Any]) -> dict[str, Any]:
+    """The rift source's null, polish and per-rotation NFAs (source alone, or the workflow's
+    registration record)."""
+    r = res if "per_rotation" in res else (res.get("rift") or {})
+    return {k: r.get(k) for k in ("null_log10_nfa", "polish", "per_rotation")}
 
 
 def run(q: bx.Query, sc: bx.Scene, name: str, seed: int) -> dict[str, Any]:
@@ -490,7 +497,7 @@ def main(argv: list[str] | None = None) -> int:
                    "seconds": res["seconds"], "cpu_seconds": cpu,
                    "candidates": res.get("candidates"), "tests": res.get("tests"),
                    "places": len(getattr(q, "alts", []) or []),
-                   "null_log10_nfa": res.get("null_log10_nfa"), "polish": res.get("polish"),
+                   **_rift_fields(res),
                    "H": None if res.get("H") is None else np.asarray(res["H"]).tolist()}  # fmt: skip
             rows[name].append(rec)
             append_record(partial, name, rec)

@@ -114,6 +114,9 @@ def test_source_adds_a_whole_query_part():
     assert parts == [] and not rec["ran"]
     parts, rec = rift.source(qi, view, [], {**conf, "rift": {"enabled": True}})
     assert rec["ran"] and rec["accepted"] and rec["candidates"] == rift.DEFAULTS["rotations"]
+    scored = {a: v for a, v in rec["per_rotation"]}  # every scored rotation's NFA is recorded
+    assert min(scored.values()) == pytest.approx(rec["log10_nfa"], abs=0.01)
+    assert scored[rec["angle_deg"]] == pytest.approx(rec["log10_nfa"], abs=0.01)
     pts = np.array([[0, 0], [159, 0], [0, 159], [159, 159]], float)
     err = matching.apply_h(np.array(parts[0]["homography"]), pts) - matching.apply_h(A @ truth, pts)
     assert np.abs(err).max() < 2.0 * g

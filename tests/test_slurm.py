@@ -204,7 +204,7 @@ def test_workflow_through_slurm_equals_local_run(slurm_cluster, tmp_path):
             "--profile", str(SLURM_PROFILE),
             "--workflow-profile", "none",
             "--cores", str(_node_cpus()),  # a job wider than the node would never start
-            "--slurm-init-seconds-before-status-checks", "5",
+            "--slurm-init-seconds-before-status-checks", "1",  # first poll after 1 s, then +10 s each idle poll
             "--slurm-keep-successful-logs",
         ],
         env=env,

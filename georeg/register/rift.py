@@ -45,9 +45,11 @@ DEFAULTS: dict[str, Any] = {
     "nfa_cap_px": 6.0,  # residuals above this count as misses in the NFA (a pose certified to it)
     "log_nfa_max": -2.0,  # accept below this log10 NFA (a source run on every query nothing else
     # accepted: 0.01 expected false alarms a query, not the acceptance's 1)
-    "null_margin": 2.0,  # accept only this many decades below the best pose of a rotation
+    "null_margin": 4.0,  # accept only this many decades below the best pose of a rotation
     # >= NULL_FAR_DEG away (a chance alignment of this query on this map: the null measured
-    # where the uniform one of the NFA is optimistic); 2 = log_nfa_max's 0.01 against that null
+    # where the uniform one of the NFA is optimistic): log_nfa_max's 2 decades against that
+    # null + 2 for its own noise (chance poses' NFAs moved by up to 2.1 decades between the
+    # source alone and the workflow's windows, Pucallpa tuning half; true poses' by 0.3)
     "polish": True,  # an accepted pose refit densely to the orthophoto (``polish``)
     "map_window_px": 1024,  # map features by windows of this side (each with its own max_kp)
     "exact_max": 2e6,  # query x map descriptor products above which the search is approximate
@@ -508,6 +510,7 @@ def register(
                         inliers=int(inl.sum()), matches=len(res), angle_deg=angle, decision=dec)  # fmt: skip
     best["lowest_log10_nfa"] = best["log10_nfa"]
     best["null_log10_nfa"] = _null_log_nfa(per_rot, best["angle_deg"])
+    best["per_rotation"] = per_rot
     margin = float(c["null_margin"])
     if best["accepted"] and margin > 0 and best["log10_nfa"] > best["null_log10_nfa"] - margin:
         best["accepted"] = False
@@ -637,6 +640,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]],
            "log10_nfa": None if math.isinf(r["log10_nfa"]) else r["log10_nfa"],
            "null_log10_nfa": None if math.isinf(r["null_log10_nfa"]) else r["null_log10_nfa"],
            "matches": r["matches"], "angle_deg": r["angle_deg"], "map_px": int(area),
+           "per_rotation": [[a, round(v, 2) if math.isfinite(v) else None] for a, v in r["per_rotation"]],
            "map_keypoints": len(mxy),
            "reason": f"fewer than min_cells ({c['min_cells']}) matched cells at every rotation"
            if r["decision"] is None else r["decision"].get("reason", ""),
