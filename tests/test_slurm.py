@@ -3,7 +3,8 @@
 `../shared/tools/start-slurm.sh` installs (apt), configures and starts munged, MariaDB + slurmdbd,
 slurmctld and slurmd on this machine (root, Debian; idempotent, ~15 s cold, <1 s when running).
 The small demo configuration (tests/data/slurm_small.yaml) is then run twice into temporary
-directories: locally (`--workflow-profile workflow/profiles/default`) and through Slurm. The test
+directories, at the same time: locally (`--workflow-profile workflow/profiles/default`) and through
+Slurm. The test
 checks that every job really went through Slurm (sacct: COMPLETED, one job per rule job or group
 job, the rule names in the job comment the plugin sets) and that both runs wrote the same files.
 
@@ -21,6 +22,7 @@ import shutil
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -187,28 +189,25 @@ def test_workflow_through_slurm_equals_local_run(slurm_cluster, tmp_path):
     if shutil.which("timeout") is None:
         pytest.skip("coreutils timeout is missing")
 
-    # 1. local reference run (2 cores, the local profile)
-    local_dir = tmp_path / "local"
-    local_log, local_s = _snakemake(
-        local_dir, ["--workflow-profile", str(LOCAL_PROFILE), "--cores", "2"]
-    )
+    # 1. local reference run (2 cores, the local profile) and 2. the same through Slurm
+    # (partition/account through the profile's environment variables), at the same time: the
+    # Slurm run mostly waits for its polls while the local one computes
+    local_dir, slurm_dir = tmp_path / "local", tmp_path / "slurm"
+    env = {**os.environ, "GEOREG_SLURM_PARTITION": PARTITION, "GEOREG_SLURM_ACCOUNT": ACCOUNT}
+    slurm_args = [
+        "--profile", str(SLURM_PROFILE),
+        "--workflow-profile", "none",
+        "--cores", str(_node_cpus()),  # a job wider than the node would never start
+        "--slurm-init-seconds-before-status-checks", "1",  # first poll after 1 s, +10 s per idle poll
+        "--slurm-keep-successful-logs",
+    ]  # fmt: skip
+    with ThreadPoolExecutor(2) as pool:
+        local = pool.submit(_snakemake, local_dir,
+                            ["--workflow-profile", str(LOCAL_PROFILE), "--cores", "2"])  # fmt: skip
+        slurm = pool.submit(_snakemake, slurm_dir, slurm_args, env)
+        (local_log, local_s), (slurm_log, slurm_s) = local.result(), slurm.result()
     expected_rules = _rules_run(local_log)
     assert expected_rules, f"the local run executed nothing:\n{_tail(local_log)}"
-
-    # 2. the same through Slurm; partition/account through the profile's environment variables
-    slurm_dir = tmp_path / "slurm"
-    env = {**os.environ, "GEOREG_SLURM_PARTITION": PARTITION, "GEOREG_SLURM_ACCOUNT": ACCOUNT}
-    slurm_log, slurm_s = _snakemake(
-        slurm_dir,
-        [
-            "--profile", str(SLURM_PROFILE),
-            "--workflow-profile", "none",
-            "--cores", str(_node_cpus()),  # a job wider than the node would never start
-            "--slurm-init-seconds-before-status-checks", "1",  # first poll after 1 s, then +10 s each idle poll
-            "--slurm-keep-successful-logs",
-        ],
-        env=env,
-    )  # fmt: skip
     print(
         f"[slurm] workflow {TARGETS}: local {local_s:.1f} s, through Slurm {slurm_s:.1f} s "
         f"(cluster start {slurm_cluster['start_s']:.1f} s)"

@@ -279,7 +279,7 @@ def run_sources(
     split["small"] = dict(recs["small_windows"])
     if recs["cfog_null"].get("ran"):
         split["small"]["cfog_null"] = recs["cfog_null"]
-    if recs["rift"].get("ran"):
+    if (recs.get("rift") or {}).get("ran"):
         split["rift"] = recs["rift"]
     return parts, split, ran, timings
 
