@@ -26,7 +26,14 @@ from rasterio.transform import Affine
 from georeg.register.geolocation import map_xy, write_geolocation
 from georeg.report.evaluation import run_evaluate_query
 from georeg.report.figures import load_query_data, make_query_figures
-from georeg.report.html import level_text, parse_timings, pooled_text, query_seconds, run_report
+from georeg.report.html import (
+    level_text,
+    parse_timings,
+    pooled_text,
+    query_seconds,
+    run_report,
+    sources_text,
+)
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 CHROMIUM = Path("/usr/bin/chromium")
@@ -444,3 +451,17 @@ def test_level_text() -> None:
     assert level_text(lv) == "orthophoto averaged to 30 map units: 157 x 186 px, 127 features"
     assert level_text({"gsd": 30.0, "reason": "too large"}) == "not used: too large"
     assert level_text(None) is None
+
+
+def test_sources_text_names_each_source_and_why_rift_decided_nothing() -> None:
+    reg = {"sources": [{"name": "features", "accepted": False, "candidates": 24},
+                       {"name": "rift", "accepted": False, "candidates": 36}],
+           "split": {"rift": {"ran": True, "accepted": False, "log10_nfa": -4.7,
+                              "null_log10_nfa": -2.1, "matches": 23, "reason": "too close"}}}  # fmt: skip
+    assert sources_text(reg) == (
+        "features (24 tried); rift (36 tried): log10 NFA -4.7, other rotations' best -2.1, "
+        "23 cells; too close"
+    )
+    reg["sources"][1]["accepted"], reg["split"]["rift"]["accepted"] = True, True
+    assert sources_text(reg).endswith("rift (36 tried, accepted): log10 NFA -4.7, other rotations' best -2.1, 23 cells")
+    assert sources_text({}) is None

@@ -318,6 +318,26 @@ def level_text(level: Any) -> str | None:
             f"{level.get('height')} px, {level['features']} features")  # fmt: skip
 
 
+def sources_text(reg: Mapping[str, Any]) -> str | None:
+    """``registration.json``'s ``sources`` (which sources of candidates ran, what each tried,
+    which was accepted) as one line, with the phase-congruency source's decision when it ran."""
+    ran = reg.get("sources") or []
+    if not ran:
+        return None
+    out = []
+    for s in ran:
+        t = f"{s.get('name')} ({s.get('candidates', 0)} tried{', accepted' if s.get('accepted') else ''})"
+        rift = (reg.get("split") or {}).get("rift") if s.get("name") == "rift" else None
+        if rift:
+            one = lambda v: "none" if v is None else f"{float(v):.1f}"  # noqa: E731
+            t += (f": log10 NFA {one(rift.get('log10_nfa'))}, other rotations' best "
+                  f"{one(rift.get('null_log10_nfa'))}, {rift.get('matches', 0)} cells")  # fmt: skip
+            if not rift.get("accepted") and rift.get("reason"):
+                t += f"; {rift['reason']}"
+        out.append(t)
+    return "; ".join(out)
+
+
 def query_section(q: QueryInputs, reg: Mapping[str, Any], ev: Mapping[str, Any]) -> str:
     """One query: key numbers, parts table, figures."""
     name = html.escape(q.name)
@@ -342,6 +362,7 @@ def query_section(q: QueryInputs, reg: Mapping[str, Any], ev: Mapping[str, Any])
         ("residual (feature px, RMS)", reg.get("residual_px")),
         ("log10 NFA", reg.get("log10_nfa")),
         ("candidates tried", reg.get("candidates_tried")),
+        ("sources of candidates", sources_text(reg)),
     ]
     kv.append(("map level (query much coarser than the map)", level_text(reg.get("level"))))
     if err.get("px"):
