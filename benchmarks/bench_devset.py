@@ -123,7 +123,27 @@ def overlaps(refs: dict[int, np.ndarray], min_inliers: int = 30) -> dict[tuple[i
     reference j px, from plain SIFT between the two optical references (same sensor: ratio 0.8,
     RANSAC similarity 3 px, >= ``min_inliers`` inliers). A query whose reference is left out is
     still in the map when another reference there overlaps its own (optical-depth pairs 105, 107
-    and 109: 181-216 inliers), and a query may be found on either copy."""
+    and 109: 181-216 inliers), and a query may be found on either copy. All pairs of n references
+    (O(n^2) matchings: ~20 min for 50 optical references) are cached in benchmarks/out/cache,
+    keyed by the references' bytes."""
+    import hashlib
+
+    h = hashlib.sha256(str(min_inliers).encode())
+    for i in sorted(refs):
+        h.update(str(i).encode() + refs[i].tobytes())
+    cache = ROOT / "benchmarks" / "out" / "cache" / f"srif_overlaps_{h.hexdigest()[:16]}.json"
+    if cache.exists():
+        return {tuple(int(v) for v in k.split(",")): np.array(T)  # type: ignore[misc]
+                for k, T in json.loads(cache.read_text()).items()}  # fmt: skip
+    out = _overlaps(refs, min_inliers)
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    tmp = cache.with_suffix(".tmp")
+    tmp.write_text(json.dumps({f"{i},{j}": T.tolist() for (i, j), T in out.items()}))
+    tmp.replace(cache)
+    return out
+
+
+def _overlaps(refs: dict[int, np.ndarray], min_inliers: int) -> dict[tuple[int, int], np.ndarray]:
     sift = cv2.SIFT_create()
     feats = {i: sift.detectAndCompute(r, None) for i, r in refs.items()}
     bf = cv2.BFMatcher()
