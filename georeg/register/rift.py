@@ -466,7 +466,9 @@ def register(
     mxy, md = map_feats if map_feats is not None else map_features(map_u8, c)
     mm = MapMatcher(md, c)
     kc = int(c["candidates"])
-    acc = {**acc_conf, "log_nfa_max": min(float(acc_conf.get("log_nfa_max", 0.0)), float(c["log_nfa_max"]))}
+    acc = {**acc_conf, "log_nfa_max": min(float(acc_conf.get("log_nfa_max", 0.0)), float(c["log_nfa_max"])),
+           "min_spread_ratio": 0.0}  # a rigid pose at the known GSD is fixed by an elongated set of
+    # inliers (log10 NFA down to -46 was refused as "nearly collinear"); only a line is refused
     area = float((map_u8 > 0).sum()) if area is None else float(area)
     n_rot = int(c["rotations"])
     h, w = query_u8.shape
