@@ -484,6 +484,17 @@ def run_refine(q: Query, sc_map: Scene, H: np.ndarray, spec: dict[str, Any]) -> 
             "global_fit": gf.get("accepted"), "global_fit_reason": gf.get("reason")}  # fmt: skip
 
 
+def map_identity(sc: Scene) -> str:
+    """The map's identity for the sources' in-memory caches (register_query's ``map_id``): its
+    name and a hash of its pixels (kept on the scene)."""
+    if getattr(sc, "_identity", None) is None:
+        import hashlib
+
+        h = hashlib.sha256(np.ascontiguousarray(sc.map_gray).tobytes()).hexdigest()[:16]
+        sc._identity = f"{sc.name}:{sc.map_gray.shape}:{h}"  # type: ignore[attr-defined]
+    return sc._identity  # type: ignore[attr-defined]
+
+
 def plain_window_reader(sc: Scene) -> Any:
     """The workflow's orthophoto window reader (fuse.ortho_window_reader) on a plain map array:
     bounds (map x, y; x = col g, y = -row g) -> (float window, NaN = nodata; 3 x 3 window pixel
@@ -548,7 +559,7 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
     u8 = query_stack(q, spec.get("bands", 1))
     prior = None if not spec.get("prior") else location_prior(q, sc_map, float(spec["prior"]), seed)
     res = register_query(u8, src, conf, q.gsd, [q.gsd / fgsd], seed, plain_window_reader(sc_map),
-                         prior, plain_level_reader(sc_map))  # fmt: skip
+                         prior, plain_level_reader(sc_map), map_identity(sc_map))  # fmt: skip
     split = res.get("split") or {}
     wins = (split.get("small") or {}).get("windows") or []
     sw = [w.get("log10_nfa") for w in wins if w.get("log10_nfa") is not None]

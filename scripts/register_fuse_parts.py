@@ -18,6 +18,7 @@ def main(smk):
         smk.output.registration,
         smk.output.geolocation,
         smk.input.ortho,
+        smk.params.cache_dir,
     )
 
 

@@ -175,6 +175,41 @@ def test_map_read_by_windows_registers_and_counts_the_area():
     assert np.abs(err).max() < 2.0 * g
 
 
+def test_map_features_cached_per_orthophoto(tmp_path):
+    """With the orthophoto's identity the map features are kept: a second query reads them back
+    from the cache directory (nothing read from the orthophoto) and decides exactly as the first;
+    another identity or feature setting computes them again."""
+    from georeg.register.search import MapSource, MapView, QueryInput
+
+    m = _scene(1)
+    q, _ = _query(m, (170.0, 150.0), 37.0, 160)
+    g = 2.0
+    src = MapSource(np.array([[0.0, -m.shape[0] * g], [m.shape[1] * g, 0.0]]),
+                    np.zeros((2, 128), np.float32), g)  # fmt: skip
+    reads = []
+
+    def reader(b):  # records the map-feature windows (side 128 + 2 patches; the polish reads others)
+        if b[2] - b[0] == pytest.approx((128 + 2 * rift.DEFAULTS["patch"]) * g):
+            reads.append(b)
+        return _box_reader(m, g)(b)
+
+    conf = {"acceptance": _acc(), "rift": {"enabled": True, "map_window_px": 128}}
+    qi = QueryInput(q, None, g, [1.0], 0)  # type: ignore[arg-type]
+    view = MapView(src, reader, "ortho-a", str(tmp_path))
+    _, first = rift.source(qi, view, [], conf)
+    assert reads and len(list(tmp_path.glob("rift_*.npz"))) == 1
+    n_reads = len(reads)
+    rift._MEMO.clear()  # as a new process: only the file is left
+    _, again = rift.source(qi, view, [], conf)
+    assert len(reads) == n_reads  # read back, not computed
+    assert again["accepted"] and again["per_rotation"] == first["per_rotation"]
+    _, plain = rift.source(qi, MapView(src, _box_reader(m, g)), [], conf)  # no identity: computed
+    assert plain["per_rotation"] == first["per_rotation"]  # and stored-precision, the same result
+    rift.source(qi, MapView(src, reader, "ortho-b", str(tmp_path)), [], conf)
+    rift.source(qi, view, [], {**conf, "rift": {**conf["rift"], "patch": 64}})
+    assert len(list(tmp_path.glob("rift_*.npz"))) == 3 and len(reads) == 2 * n_reads
+
+
 def test_approximate_map_search_finds_most_exact_neighbours():
     """Above ``exact_max`` products the nearest map descriptor comes from a faiss IVF index: on a
     scene's descriptors it agrees with the exact search for most query descriptors."""

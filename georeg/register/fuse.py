@@ -329,6 +329,7 @@ def register_query(
     read_window: Any = None,
     prior: Any = None,
     read_level: Any = None,
+    map_id: str | None = None,
 ) -> dict[str, Any]:
     """The workflow's search_part jobs and fuse_parts in one process (the library's entry point):
     split plan, every part, the other sources (the small-query ones when ``read_window`` is
@@ -336,12 +337,14 @@ def register_query(
     (``georeg.io.prior``: ``{"centre": [x, y], "radius_m": r}`` or ``{"box": [x0, y0, x1,
     y1]}``, ``"crs": "map"`` (default) or ``"lonlat"``; or map bounds): the map the sources see
     is clipped to it. ``read_level``: the orthophoto as a ``georeg.register.level.LevelReader``
-    (a query much coarser than the map searches a level near its GSD). Returns the fused result
-    with ``split``, ``parts``, ``sources``, the terms' records, ``prior`` and ``level``."""
+    (a query much coarser than the map searches a level near its GSD). ``map_id``: the
+    orthophoto's identity, under which what the sources compute from it is kept in memory for
+    the next query (None: nothing kept). Returns the fused result with ``split``, ``parts``,
+    ``sources``, the terms' records, ``prior`` and ``level``."""
     bounds = prior_bounds(prior, source.crs_wkt)
     h, w = u8.shape[-2:]
     view, factors, lrec = map_for_query(source, bounds, w, h, gsd_m, factors, conf, read_window,
-                                        read_level)  # fmt: skip
+                                        read_level, map_id)  # fmt: skip
     full = query_features(u8, (0, h), factors, view.source.features_conf)
     n = int(conf.get("parts", 2))
     parts = [search_one_part(u8, k, view.source, conf, gsd_m, factors, seed, full)
@@ -363,11 +366,14 @@ def run_fuse_parts(
     out_json: str,
     out_geoloc: str,
     ortho: str | None = None,
+    cache_dir: str | None = None,
 ) -> dict[str, Any]:
     """Rule fuse_parts: the other sources, fusion and the verifier's terms (``decide``); write
     geolocation.tif (all NaN when not found) and registration.json.
 
-    ``ortho``: the orthophoto mosaic, read by the small-query sources and the orthophoto check.
+    ``ortho``: the orthophoto mosaic, read by the small-query sources and the orthophoto check;
+    ``cache_dir``: where the sources keep what they compute from it for the next query
+    (``ortho_identity``).
     The query's location prior (band.json ``prior``) clips the map as in the search_part jobs."""
     import json
     from pathlib import Path
@@ -395,6 +401,7 @@ def run_fuse_parts(
         source, bounds, w, h, gsd, factors, reg_conf,
         None if not ortho else ortho_window_reader(ortho),
         None if not ortho else level.read_ortho_level(ortho),
+        None if not ortho else ortho_identity(ortho), cache_dir,
     )  # fmt: skip
     full = query_features(u8, (0, h), factors, view.source.features_conf)
     timings["fuse_features"] = time.perf_counter() - t1
@@ -467,6 +474,15 @@ def run_fuse_parts(
     reg["timings_s"] = timings
     write_json(out_json, reg)
     return reg
+
+
+def ortho_identity(ortho: str) -> str:
+    """The orthophoto's identity for caches: its path, size and modification time (the mosaic
+    rule rewrites it whenever a tile changes)."""
+    import os
+
+    st = os.stat(ortho)
+    return f"{os.path.abspath(ortho)}:{st.st_size}:{st.st_mtime_ns}"
 
 
 def ortho_window_reader(ortho: str) -> Any:

@@ -13,7 +13,13 @@ correspondences.
 
 from __future__ import annotations
 
+import hashlib
+import json
+import logging
 import math
+import os
+import time
+from pathlib import Path
 from typing import Any
 
 import cv2
@@ -63,6 +69,13 @@ DEFAULTS: dict[str, Any] = {
 #: rotations this far from the best one are not its pose (the rigid fit takes +-max_angle_deg
 #: around each 10 deg step, so the two neighbouring steps can find the same pose)
 NULL_FAR_DEG = 25.0
+
+log = logging.getLogger(__name__)
+
+#: the settings the map's features depend on (the key of their cache)
+FEATURE_KEYS = ("nscale", "norient", "min_wavelength", "mult", "sigma_onf", "k", "g", "cut_off",
+                "kp_per_mpx", "max_kp", "grid", "patch", "cells", "map_window_px")  # fmt: skip
+_MEMO: dict[str, tuple[np.ndarray, np.ndarray, float, np.ndarray]] = {}
 
 
 def rift_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
@@ -602,6 +615,63 @@ def read_map_features(read_window: Any, bounds: tuple[float, float, float, float
     return np.vstack(xys), np.vstack(ds), area, G
 
 
+def _stored(feats: tuple[np.ndarray, np.ndarray, float, np.ndarray]) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+    """Map features as the cache stores them (keypoints float32, descriptors float16), so that a
+    result does not depend on whether they were computed now or read back."""
+    xy, d, area, G = feats
+    return (xy.astype(np.float32).astype(np.float64), d.astype(np.float16).astype(np.float32),
+            float(area), G)  # fmt: skip
+
+
+def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g: float,
+                        conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, float, np.ndarray] | None:  # fmt: skip
+    """``read_map_features`` kept per orthophoto (``view.ortho_id``; None: computed each time):
+    the last map in memory and, when ``view.cache_dir`` is set, every map on disk
+    (``rift_<key>.npz``, written to a temporary name and renamed, so parallel jobs may race
+    safely). The key: the orthophoto, ``bounds``, ``g``, the view's feature GSD and
+    ``FEATURE_KEYS``. Returns as ``read_map_features`` (rounded as stored)."""
+    c = rift_conf(conf)
+    oid = getattr(view, "ortho_id", None)
+    if oid is None:
+        got = read_map_features(view.read_window, bounds, g, c)
+        return None if got is None else _stored(got)
+    blob = json.dumps([oid, [round(float(v), 6) for v in bounds], round(g, 9),
+                       round(float(view.source.gsd_m), 9), [c[k] for k in FEATURE_KEYS]])  # fmt: skip
+    key = hashlib.sha256(blob.encode()).hexdigest()[:20]
+    if key in _MEMO:
+        return _MEMO[key]
+    path = Path(view.cache_dir) / f"rift_{key}.npz" if getattr(view, "cache_dir", None) else None
+    if path is not None and path.exists():
+        try:
+            with np.load(path) as z:
+                got = (z["xy"].astype(np.float64), z["desc"].astype(np.float32),
+                       float(z["area"]), z["G"])  # fmt: skip
+            log.info("rift: map features read from %s (%d keypoints)", path, len(got[0]))
+        except (OSError, KeyError, ValueError) as e:
+            log.warning("rift: map feature cache %s unreadable (%s): computing again", path, e)
+            got = None
+        if got is not None:
+            _MEMO.clear()
+            _MEMO[key] = got
+            return got
+    t0 = time.perf_counter()
+    raw = read_map_features(view.read_window, bounds, g, c)
+    if raw is None:
+        return None
+    got = _stored(raw)
+    log.info("rift: map features of %.1f Mpx at %.3g map units/px: %d keypoints in %.1f s",
+             got[2] / 1e6, g, len(got[0]), time.perf_counter() - t0)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
+        np.savez(tmp, xy=got[0].astype(np.float32), desc=got[1].astype(np.float16),
+                 area=np.float64(got[2]), G=got[3])  # fmt: skip
+        os.replace(tmp, path)
+    _MEMO.clear()
+    _MEMO[key] = got
+    return got
+
+
 def source(q: Any, view: Any, parts: list[dict[str, Any]],
            conf: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, Any]]:  # fmt: skip
     """Source ``rift`` (``register.rift``; ``georeg.register.fuse.SOURCES``): the query's primary
@@ -629,7 +699,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]],
     if why:
         return parts, {"ran": False, "reason": why}
     t0 = time.perf_counter()
-    got = read_map_features(view.read_window, b, g, c)
+    got = cached_map_features(view, b, g, c)
     if got is None:
         return parts, {"ran": False, "reason": "orthophoto window unreadable"}
     mxy, md, area, G = got

@@ -136,6 +136,8 @@ def map_for_query(
     conf: dict[str, Any],
     read_window: Any = None,
     read_level: level.LevelReader | None = None,
+    ortho_id: str | None = None,
+    cache_dir: str | None = None,
 ) -> tuple[MapView, list[float], dict[str, Any] | None]:
     """The map a query searches and the query's resize factors: the map clipped to the
     location prior (``clip_to_prior``), and, when the query is much coarser than the map's
@@ -143,24 +145,26 @@ def map_for_query(
     features (``georeg.register.level``) with the query at factor 1; the dense sources and checks
     then read the orthophoto at that level too (``level.window_reader``: the null scan, the
     small-query windows and the orthophoto check shrink the map to about the query's GSD
-    anyway). Returns (view, factors, the level's record or None when no level was asked for)."""
+    anyway). ``ortho_id`` / ``cache_dir``: ``MapView``'s. Returns (view, factors, the level's
+    record or None when no level was asked for)."""
     source = clip_to_prior(source, prior, width, height, gsd_m, factors)
     lconf = {**level.DEFAULTS, **(conf.get("level") or {})}
     g = level.level_gsd(gsd_m, source.gsd_m, lconf)
     if g is None:
-        return MapView(source, read_window), factors, None
+        return MapView(source, read_window, ortho_id, cache_dir), factors, None
     if read_level is None:
         rec = {"gsd": g, "reason": "no orthophoto to read the level from"}
-        return MapView(source, read_window), factors, rec
+        return MapView(source, read_window, ortho_id, cache_dir), factors, rec
     feats, rec = level.level_features(read_level, source.bounds, g, source.features_conf,
                                       float(lconf["max_mpx"]))  # fmt: skip
     if feats is None:
         log.warning("map level not used: %s", rec.get("reason"))
-        return MapView(source, read_window), factors, rec
+        return MapView(source, read_window, ortho_id, cache_dir), factors, rec
     out = MapView(
         MapSource(feats["xy"], feats["desc"], g, source.crs_wkt, angle=feats["angle"],
                   scale=feats["scale"], clip=source.clip, settings=source.features_conf),
         None if read_window is None else level.window_reader(read_level, g / level.WINDOW_FINER),
+        ortho_id, cache_dir,
     )  # fmt: skip
     return out, [float(gsd_m) / g], rec
 
@@ -260,10 +264,14 @@ class MapView:
     """What every source sees of the map: its features (``MapSource``, clipped to the query's
     location prior when there is one) and the orthophoto window reader (``read_window(bounds)``
     -> (float gray, NaN = nodata; 3 x 3 window pixel centre -> map x, y) or None; None = no
-    orthophoto)."""
+    orthophoto). ``ortho_id``: the orthophoto's identity (None: unknown), which keys what the
+    sources compute from it and keep (``georeg.register.rift.cached_map_features``): in memory,
+    and on disk under ``cache_dir`` when given."""
 
     source: MapSource
     read_window: Any = None
+    ortho_id: str | None = None
+    cache_dir: str | None = None
 
 
 SPLIT_DEFAULTS: dict[str, Any] = {

@@ -71,6 +71,7 @@ rule fuse_parts:
     params:
         register=config["register"],
         seed=REG_SEED,
+        cache_dir="results/cache/register",  # map features the sources keep between queries
     log:
         "logs/register/fuse_parts/{name}.log",
     benchmark:
