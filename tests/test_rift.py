@@ -204,7 +204,7 @@ def test_map_features_cached_per_orthophoto(tmp_path):
     assert len(reads) == n_reads  # read back, not computed
     assert again["accepted"] and again["per_rotation"] == first["per_rotation"]
     _, plain = rift.source(qi, MapView(src, _box_reader(m, g)), [], conf)  # no identity: computed
-    assert plain["per_rotation"] == first["per_rotation"]  # and stored-precision, the same result
+    assert plain["per_rotation"] == first["per_rotation"]  # the same result
     rift.source(qi, MapView(src, reader, "ortho-b", str(tmp_path)), [], conf)
     rift.source(qi, view, [], {**conf, "rift": {**conf["rift"], "patch": 64}})
     assert len(list(tmp_path.glob("rift_*.npz"))) == 3 and len(reads) == 2 * n_reads

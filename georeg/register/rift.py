@@ -62,7 +62,7 @@ DEFAULTS: dict[str, Any] = {
     "nprobe": 64,  # approximate search: inverted lists visited (faiss IVF, 4 sqrt(n) lists)
     "seed": 0,  # the approximate index's k-means
     "max_upsample": 1.5,  # query enlarged at most this much to the map's GSD, else the map shrunk
-    "max_map_px": 16_000_000,  # the source is not run on larger maps (at the query's GSD)
+    "max_map_px": 32_000_000,  # the source is not run on larger maps (at the query's GSD)
 }
 
 
@@ -615,26 +615,18 @@ def read_map_features(read_window: Any, bounds: tuple[float, float, float, float
     return np.vstack(xys), np.vstack(ds), area, G
 
 
-def _stored(feats: tuple[np.ndarray, np.ndarray, float, np.ndarray]) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
-    """Map features as the cache stores them (keypoints float32, descriptors float16), so that a
-    result does not depend on whether they were computed now or read back."""
-    xy, d, area, G = feats
-    return (xy.astype(np.float32).astype(np.float64), d.astype(np.float16).astype(np.float32),
-            float(area), G)  # fmt: skip
-
-
 def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g: float,
                         conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, float, np.ndarray] | None:  # fmt: skip
     """``read_map_features`` kept per orthophoto (``view.ortho_id``; None: computed each time):
     the last map in memory and, when ``view.cache_dir`` is set, every map on disk
     (``rift_<key>.npz``, written to a temporary name and renamed, so parallel jobs may race
     safely). The key: the orthophoto, ``bounds``, ``g``, the view's feature GSD and
-    ``FEATURE_KEYS``. Returns as ``read_map_features`` (rounded as stored)."""
+    ``FEATURE_KEYS``. Returns as ``read_map_features`` (stored at full precision: a result does
+    not depend on whether they were computed now or read back)."""
     c = rift_conf(conf)
     oid = getattr(view, "ortho_id", None)
     if oid is None:
-        got = read_map_features(view.read_window, bounds, g, c)
-        return None if got is None else _stored(got)
+        return read_map_features(view.read_window, bounds, g, c)
     blob = json.dumps([oid, [round(float(v), 6) for v in bounds], round(g, 9),
                        round(float(view.source.gsd_m), 9), [c[k] for k in FEATURE_KEYS]])  # fmt: skip
     key = hashlib.sha256(blob.encode()).hexdigest()[:20]
@@ -644,8 +636,7 @@ def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g:
     if path is not None and path.exists():
         try:
             with np.load(path) as z:
-                got = (z["xy"].astype(np.float64), z["desc"].astype(np.float32),
-                       float(z["area"]), z["G"])  # fmt: skip
+                got = (z["xy"], z["desc"], float(z["area"]), z["G"])
             log.info("rift: map features read from %s (%d keypoints)", path, len(got[0]))
         except (OSError, KeyError, ValueError) as e:
             log.warning("rift: map feature cache %s unreadable (%s): computing again", path, e)
@@ -655,17 +646,15 @@ def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g:
             _MEMO[key] = got
             return got
     t0 = time.perf_counter()
-    raw = read_map_features(view.read_window, bounds, g, c)
-    if raw is None:
+    got = read_map_features(view.read_window, bounds, g, c)
+    if got is None:
         return None
-    got = _stored(raw)
     log.info("rift: map features of %.1f Mpx at %.3g map units/px: %d keypoints in %.1f s",
              got[2] / 1e6, g, len(got[0]), time.perf_counter() - t0)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
-        np.savez(tmp, xy=got[0].astype(np.float32), desc=got[1].astype(np.float16),
-                 area=np.float64(got[2]), G=got[3])  # fmt: skip
+        np.savez(tmp, xy=got[0], desc=got[1], area=np.float64(got[2]), G=got[3])
         os.replace(tmp, path)
     _MEMO.clear()
     _MEMO[key] = got
