@@ -572,6 +572,7 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
     extra["null_check"] = nk.get("outcome")
     oc = res.get("ortho_check") or {}
     extra["ortho"] = oc.get("outcome")
+    extra["ortho_gain"] = oc.get("gain")  # the tie points at H vs moved hypotheses (fits <= max_inliers)
     if spec.get("refine") is not None and res["status"] == "registered":
         extra.update(run_refine(q, sc_map, np.array(res["homography"]), spec))
     return {
@@ -892,7 +893,7 @@ def main(argv: list[str] | None = None) -> int:
                    "global_fit": res.get("global_fit"), "small_nfa": res.get("small_nfa"),
                    "null_nfa": res.get("null_nfa"), "null_accepted": res.get("null_accepted"),
                    "global_fit_reason": res.get("global_fit_reason"),
-                   "ortho": res.get("ortho"), "rift": res.get("rift"),
+                   "ortho": res.get("ortho"), "ortho_gain": res.get("ortho_gain"), "rift": res.get("rift"),
                    "null_check": res.get("null_check")}  # fmt: skip
             rows[name].append(rec)
             if a.v:

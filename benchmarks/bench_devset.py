@@ -574,7 +574,7 @@ def main(argv: list[str] | None = None) -> int:
                    "candidates": res.get("candidates"), "tests": res.get("tests"),
                    "places": len(getattr(q, "alts", []) or []),
                    "truth_audit": getattr(q, "truth_audit", None),
-                   **_rift_fields(res),
+                   **_rift_fields(res), "ortho_gain": res.get("ortho_gain"),
                    "H": None if res.get("H") is None else np.asarray(res["H"]).tolist()}  # fmt: skip
             rows[name].append(rec)
             append_record(partial, name, rec)
