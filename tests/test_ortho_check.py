@@ -129,13 +129,20 @@ def test_apply_in_the_fuse_step_rejects_or_skips_never_changes_the_fit(scene):
     wrong = {**fused, "homography": moved(H, 60.0).tolist()}
     out, rec = oc.apply(q, wrong, read, conf)
     assert out["status"] == "not_found" and out["homography"] is None and "ortho_check" in out["reason"]
-    # record mode: written, decision unchanged; many inliers: not due; off: nothing
-    out, rec = oc.apply(q, wrong, read, {"ortho_check": {"mode": "record"}})
+    # record mode without the gain veto: written, decision unchanged; many inliers: not due; off: nothing
+    out, rec = oc.apply(q, wrong, read, {"ortho_check": {"mode": "record", "veto_gain": 0}})
     assert out["status"] == "registered" and rec["outcome"] == "disagrees"
     assert out["homography"] == wrong["homography"]
-    # the default: record, the fit as it was
+    # the default: record, with the gain veto (2): the moved fit is supported no better than
+    # poses moved from it, so it is not_found; a rift pose is left to its own polish
     assert oc.ortho_conf({})["mode"] == "record"
-    out, rec = oc.apply(q, {**fused, "homography": distorted(H).tolist()}, read, {})
+    out, rec = oc.apply(q, wrong, read, {})
+    assert rec["gain"] < 2.0 and out["status"] == "not_found" and "veto_gain" in out["reason"]
+    out, rec = oc.apply(q, {**wrong, "best_source": "rift"}, read, {})
+    assert out["status"] == "registered" and rec["veto_gain"] == 0.0
+    out, rec = oc.apply(q, fused, read, {})  # the right fit: as it was
+    assert rec["gain"] >= 2.0 and out["status"] == "registered" and out["homography"] == H.tolist()
+    out, rec = oc.apply(q, {**fused, "homography": distorted(H).tolist()}, read, {"ortho_check": {"veto_gain": 0}})
     assert out["homography"] == distorted(H).tolist()
     out, rec = oc.apply(q, {**wrong, "inliers": 31}, read, conf)
     assert out["status"] == "registered" and rec["outcome"] == "skipped"

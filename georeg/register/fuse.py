@@ -111,6 +111,7 @@ def fuse(
     tol = float(fc.get("agree_m", 25.0))
     agree = [p["part"] for p in acc if disagreement_m(Hb, Hs[p["part"]], grid)["median"] <= tol]
     out["best_part"] = best["part"]
+    out["best_source"] = best.get("method") or "features"
     out["agreeing_parts"] = agree
     if len(acc) > 1 and len(agree) < len(acc):
         log.warning(

@@ -65,6 +65,9 @@ DEFAULTS: dict[str, Any] = {
     "refit": True,  # refit the fit to dense tie points first (georeg.register.densefit)
     "refit_iterations": 6,  # measure -> affine fit passes of the refit
     "refit_min_gain": 0.1,  # the refit is taken when its blocked CV residual is this much lower
+    "veto_gain": 2.0,  # any mode but off: a checked fit supported less than this times the best
+    # moved hypothesis is not_found (0 = never); not applied to rift's poses (their polish is
+    # this check with its own floor of 1)
 }
 MODES = ("off", "record", "reject")
 
@@ -272,14 +275,24 @@ def apply(q_u8: np.ndarray, fused: dict[str, Any], read_window: Any,
         return fused, rec
     _, got = verify(band, H, img, c)
     rec.update(got)
+    rec["veto_gain"] = 0.0 if fused.get("best_source") == "rift" else float(c["veto_gain"])
     log.info("ortho check: %s, supported %.3f (x%.1f the moved hypotheses)",
              rec["outcome"], rec.get("supported", 0.0), rec.get("gain", 0.0))  # fmt: skip
     return veto(fused, rec), rec
 
 
 def veto(fused: dict[str, Any], rec: dict[str, Any] | None) -> dict[str, Any]:
-    """The fused result, turned ``not_found`` when ``mode: reject`` and the check disagrees."""
-    if not rec or rec.get("mode") != "reject" or rec.get("outcome") != "disagrees":
+    """The fused result, turned ``not_found`` when the check's gain is below its ``veto_gain``
+    (the tie points support a pose moved by a few pixels nearly as well: a weak fit at the wrong
+    place, or a GT-level near miss), or with ``mode: reject`` when the check disagrees."""
+    if not rec:
+        return fused
+    g, floor = rec.get("gain"), float(rec.get("veto_gain") or 0.0)
+    if g is not None and floor > 0 and g < floor:
+        why = (f"the orthophoto's tie points support moved poses nearly as well as the "
+               f"registration (gain {g:.2f} < ortho_check.veto_gain {floor:g})")  # fmt: skip
+        return {**fused, "status": "not_found", "homography": None, "reason": why}
+    if rec.get("mode") != "reject" or rec.get("outcome") != "disagrees":
         return fused
     why = "the orthophoto's tie points do not support the registration (ortho_check)"
     return {**fused, "status": "not_found", "homography": None, "reason": why}
