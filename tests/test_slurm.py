@@ -9,7 +9,7 @@ checks that every job really went through Slurm (sacct: COMPLETED, one job per r
 job, the rule names in the job comment the plugin sets) and that both runs wrote the same files.
 
 Skips cleanly when the script is absent, when not root, or when the cluster does not start.
-Run it alone with `python -m pytest -q -m slurm -s` (-s prints the timings).
+Run it alone with `python -m pytest -q -n 0 -m slurm -s` (-s prints the timings).
 """
 
 from __future__ import annotations
