@@ -291,8 +291,8 @@ def veto(fused: dict[str, Any], rec: dict[str, Any] | None) -> dict[str, Any]:
     if g is not None and floor > 0 and g < floor:
         why = (f"the orthophoto's tie points support moved poses nearly as well as the "
                f"registration (gain {g:.2f} < ortho_check.veto_gain {floor:g})")  # fmt: skip
-        return {**fused, "status": "not_found", "homography": None, "reason": why}
-    if rec.get("mode") != "reject" or rec.get("outcome") != "disagrees":
+    elif rec.get("mode") == "reject" and rec.get("outcome") == "disagrees":
+        why = "the orthophoto's tie points do not support the registration (ortho_check)"
+    else:
         return fused
-    why = "the orthophoto's tie points do not support the registration (ortho_check)"
     return {**fused, "status": "not_found", "homography": None, "reason": why}

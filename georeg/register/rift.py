@@ -17,7 +17,6 @@ import hashlib
 import json
 import logging
 import math
-import os
 import time
 from pathlib import Path
 from typing import Any
@@ -619,12 +618,12 @@ def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g:
                         conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, float, np.ndarray] | None:  # fmt: skip
     """``read_map_features`` kept per orthophoto (``view.ortho_id``; None: computed each time):
     the last map in memory and, when ``view.cache_dir`` is set, every map on disk
-    (``rift_<key>.npz``, written to a temporary name and renamed, so parallel jobs may race
-    safely). The key: the orthophoto, ``bounds``, ``g``, the view's feature GSD and
+    (``rift_<key>.npz``, written through ``georeg.io.atomic.atomic_path``, so parallel jobs may
+    race safely). The key: the orthophoto, ``bounds``, ``g``, the view's feature GSD and
     ``FEATURE_KEYS``. Returns as ``read_map_features`` (stored at full precision: a result does
     not depend on whether they were computed now or read back)."""
     c = rift_conf(conf)
-    oid = getattr(view, "ortho_id", None)
+    oid = view.ortho_id
     if oid is None:
         return read_map_features(view.read_window, bounds, g, c)
     blob = json.dumps([oid, [round(float(v), 6) for v in bounds], round(g, 9),
@@ -632,7 +631,7 @@ def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g:
     key = hashlib.sha256(blob.encode()).hexdigest()[:20]
     if key in _MEMO:
         return _MEMO[key]
-    path = Path(view.cache_dir) / f"rift_{key}.npz" if getattr(view, "cache_dir", None) else None
+    path = Path(view.cache_dir) / f"rift_{key}.npz" if view.cache_dir else None
     if path is not None and path.exists():
         try:
             with np.load(path) as z:
@@ -652,10 +651,10 @@ def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g:
     log.info("rift: map features of %.1f Mpx at %.3g map units/px: %d keypoints in %.1f s",
              got[2] / 1e6, g, len(got[0]), time.perf_counter() - t0)
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
-        np.savez(tmp, xy=got[0], desc=got[1], area=np.float64(got[2]), G=got[3])
-        os.replace(tmp, path)
+        from georeg.io.atomic import atomic_path
+
+        with atomic_path(path) as tmp:
+            np.savez(tmp, xy=got[0], desc=got[1], area=np.float64(got[2]), G=got[3])
     _MEMO.clear()
     _MEMO[key] = got
     return got

@@ -148,23 +148,24 @@ def map_for_query(
     anyway). ``ortho_id`` / ``cache_dir``: ``MapView``'s. Returns (view, factors, the level's
     record or None when no level was asked for)."""
     source = clip_to_prior(source, prior, width, height, gsd_m, factors)
+    view = MapView(source, read_window, ortho_id, cache_dir)
     lconf = {**level.DEFAULTS, **(conf.get("level") or {})}
     g = level.level_gsd(gsd_m, source.gsd_m, lconf)
     if g is None:
-        return MapView(source, read_window, ortho_id, cache_dir), factors, None
+        return view, factors, None
     if read_level is None:
-        rec = {"gsd": g, "reason": "no orthophoto to read the level from"}
-        return MapView(source, read_window, ortho_id, cache_dir), factors, rec
+        return view, factors, {"gsd": g, "reason": "no orthophoto to read the level from"}
     feats, rec = level.level_features(read_level, source.bounds, g, source.features_conf,
                                       float(lconf["max_mpx"]))  # fmt: skip
     if feats is None:
         log.warning("map level not used: %s", rec.get("reason"))
-        return MapView(source, read_window, ortho_id, cache_dir), factors, rec
-    out = MapView(
-        MapSource(feats["xy"], feats["desc"], g, source.crs_wkt, angle=feats["angle"],
-                  scale=feats["scale"], clip=source.clip, settings=source.features_conf),
-        None if read_window is None else level.window_reader(read_level, g / level.WINDOW_FINER),
-        ortho_id, cache_dir,
+        return view, factors, rec
+    out = replace(
+        view,
+        source=MapSource(feats["xy"], feats["desc"], g, source.crs_wkt, angle=feats["angle"],
+                         scale=feats["scale"], clip=source.clip, settings=source.features_conf),
+        read_window=None if read_window is None
+        else level.window_reader(read_level, g / level.WINDOW_FINER),
     )  # fmt: skip
     return out, [float(gsd_m) / g], rec
 
