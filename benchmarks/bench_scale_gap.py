@@ -45,6 +45,9 @@ METHODS: dict[str, dict[str, Any]] = {
     # the same without the map level (``register.level.min_ratio: 0``): the query resized to
     # the map's feature GSD, the search before issue 34 item 5
     "wf_nolevel": {"pipeline": {"level": {"min_ratio": 0}}, "bands": "auto"},
+    # the workflow default followed by its refinement stage at the map's full resolution (rule
+    # refine_registration; item 5's "then refined at full resolution"), judged on the refined grid
+    "wf_default_refined": {"pipeline": {}, "bands": "auto", "refine": {}},
 }
 
 

@@ -187,6 +187,28 @@ def test_small_query_searched_whole_then_fused_and_idle_part_recorded(synthetic_
     assert np.median(error_px(np.array(fused["homography"]), Minv, tr, q)) < 1.0
 
 
+def test_fused_rematch_replaces_the_best_part_only_when_as_significant(synthetic_map):
+    """One model choice: the full-query re-match around the best part is one more candidate; it
+    does not replace a part whose pose is more significant (a rift pose, SRIF oi 57)."""
+    img, tr, src = synthetic_map
+    q, Minv = warp_query(img[100:260, 120:300], 1.0, 30.0)
+    Minv = np.array([[1, 0, 120], [0, 1, 100], [0, 0, 1]]) @ Minv
+    conf = reg_conf()
+    parts = [search.search_one_part(q, k, src, conf, None, [1.0], 5) for k in range(2)]
+    full = query_features(q, (0, q.shape[0]), [1.0], None)
+    parts, _ = fuse_mod.whole_query_fallback(full, src, parts, conf, None, 5)
+    best = next(p for p in parts if p.get("accepted"))
+    # the part's pose, moved by 2 map px: which of the two the fusion returns is visible
+    H_part = np.array([[1, 0, 2 * tr.a], [0, 1, 0], [0, 0, 1.0]]) @ np.array(best["homography"])
+    for nfa, expect in ((-1e4, "best_part"), (-1.0, "fused")):
+        best.update(homography=H_part.tolist(), log10_nfa=nfa, method="rift")
+        fused = fuse(full, src, parts, conf, None)
+        assert fused["status"] == "registered" and fused["method"] == expect
+        err = np.median(error_px(np.array(fused["homography"]), Minv, tr, q))
+        assert (abs(err - 2.0) < 0.5) if expect == "best_part" else err < 1.0
+        assert fused["fused_candidate"].get("kept", True) is (expect == "fused")
+
+
 def test_query_features_pool_a_band_stack():
     a, b = texture((120, 140), seed=1), texture((120, 140), seed=2)
     fa = query_features(a, (10, 90), [1.0], FEAT)

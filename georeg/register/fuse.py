@@ -135,7 +135,16 @@ def fuse(
         guide=(Hb, float(fc.get("guide_radius_m", 30.0))),
     )
     out["fused_candidate"] = {k: v for k, v in rec.items() if k != "homography"}
-    if rec["accepted"] and fit is not None and m is not None:
+    # one model choice: the re-match is one more candidate and replaces the best part only when
+    # it is at least as significant (a 4-inlier SIFT re-match must not replace a 15-inlier rift
+    # pose it was guided by: SRIF oi 57, 16 px off)
+    best_nfa = best.get("log10_nfa")
+    weaker = (rec["accepted"] and best_nfa is not None and rec.get("log10_nfa") is not None
+              and float(rec["log10_nfa"]) > float(best_nfa))  # fmt: skip
+    if weaker:
+        rec = {**rec, "reason": f"log10 NFA {rec['log10_nfa']:.1f} > the best part's {best_nfa:.1f}"}
+        out["fused_candidate"]["kept"] = False
+    if rec["accepted"] and not weaker and fit is not None and m is not None:
         H = fit.H
         inl = fit.inliers
         out.update(
