@@ -189,7 +189,8 @@ def test_small_query_searched_whole_then_fused_and_idle_part_recorded(synthetic_
 
 def test_fused_rematch_replaces_the_best_part_only_when_as_significant(synthetic_map):
     """One model choice: the full-query re-match around the best part is one more candidate; it
-    does not replace a part whose pose is more significant (a rift pose, SRIF oi 57)."""
+    does not replace a part whose pose is more significant or has more inliers (rift poses,
+    SRIF wide oi 57 and 77)."""
     img, tr, src = synthetic_map
     q, Minv = warp_query(img[100:260, 120:300], 1.0, 30.0)
     Minv = np.array([[1, 0, 120], [0, 1, 100], [0, 0, 1]]) @ Minv
@@ -200,8 +201,10 @@ def test_fused_rematch_replaces_the_best_part_only_when_as_significant(synthetic
     best = next(p for p in parts if p.get("accepted"))
     # the part's pose, moved by 2 map px: which of the two the fusion returns is visible
     H_part = np.array([[1, 0, 2 * tr.a], [0, 1, 0], [0, 0, 1.0]]) @ np.array(best["homography"])
-    for nfa, expect in ((-1e4, "best_part"), (-1.0, "fused")):
-        best.update(homography=H_part.tolist(), log10_nfa=nfa, method="rift")
+    n = best["inliers"]
+    for nfa, inliers, expect in ((-1e4, n, "best_part"), (-1.0, 10 * n, "best_part"),
+                                 (-1.0, n, "fused")):  # fmt: skip
+        best.update(homography=H_part.tolist(), log10_nfa=nfa, inliers=inliers, method="rift")
         fused = fuse(full, src, parts, conf, None)
         assert fused["status"] == "registered" and fused["method"] == expect
         err = np.median(error_px(np.array(fused["homography"]), Minv, tr, q))

@@ -136,13 +136,19 @@ def fuse(
     )
     out["fused_candidate"] = {k: v for k, v in rec.items() if k != "homography"}
     # one model choice: the re-match is one more candidate and replaces the best part only when
-    # it is at least as significant (a 4-inlier SIFT re-match must not replace a 15-inlier rift
-    # pose it was guided by: SRIF oi 57, 16 px off)
-    best_nfa = best.get("log10_nfa")
-    weaker = (rec["accepted"] and best_nfa is not None and rec.get("log10_nfa") is not None
-              and float(rec["log10_nfa"]) > float(best_nfa))  # fmt: skip
+    # it explains at least as many matches and is at least as significant. Its NFA is conditional
+    # on the guide, so fewer inliers alone disqualify it: SIFT re-matches of 4 and 6 inliers had
+    # replaced rift poses of 15 and 8 that guided them (SRIF wide oi 57, 77: 16 px off)
+    best_nfa, best_inl = best.get("log10_nfa"), int(best.get("inliers") or 0)
+    why = []
+    if rec["accepted"] and int(rec.get("inliers") or 0) < best_inl:
+        why.append(f"{rec.get('inliers')} inliers < the best part's {best_inl}")
+    if (rec["accepted"] and best_nfa is not None and rec.get("log10_nfa") is not None
+            and float(rec["log10_nfa"]) > float(best_nfa)):  # fmt: skip
+        why.append(f"log10 NFA {rec['log10_nfa']:.1f} > the best part's {best_nfa:.1f}")
+    weaker = bool(why)
     if weaker:
-        rec = {**rec, "reason": f"log10 NFA {rec['log10_nfa']:.1f} > the best part's {best_nfa:.1f}"}
+        rec = {**rec, "reason": "; ".join(why)}
         out["fused_candidate"]["kept"] = False
     if rec["accepted"] and not weaker and fit is not None and m is not None:
         H = fit.H
