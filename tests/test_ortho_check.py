@@ -138,8 +138,11 @@ def test_apply_in_the_fuse_step_rejects_or_skips_never_changes_the_fit(scene):
     assert oc.ortho_conf({})["mode"] == "record"
     out, rec = oc.apply(q, wrong, read, {})
     assert rec["gain"] < 2.0 and out["status"] == "not_found" and "veto_gain" in out["reason"]
-    out, rec = oc.apply(q, {**wrong, "best_source": "rift"}, read, {})
+    out, rec = oc.apply(q, {**wrong, "pose_source": "rift"}, read, {})
     assert out["status"] == "registered" and rec["veto_gain"] == 0.0
+    # a feature re-match guided by a rift pose is a feature fit: the floor applies
+    out, rec = oc.apply(q, {**wrong, "best_source": "rift", "pose_source": "features"}, read, {})
+    assert out["status"] == "not_found" and rec["veto_gain"] == 2.0
     out, rec = oc.apply(q, fused, read, {})  # the right fit: as it was
     assert rec["gain"] >= 2.0 and out["status"] == "registered" and out["homography"] == H.tolist()
     out, rec = oc.apply(q, {**fused, "homography": distorted(H).tolist()}, read, {"ortho_check": {"veto_gain": 0}})

@@ -156,6 +156,7 @@ def fuse(
         out.update(
             status="registered",
             method="fused",
+            pose_source="features",  # the re-match is a feature fit whatever guided it
             homography=H.tolist(),  # type: ignore[union-attr]
             inliers=fit.n_inliers,
             matches=len(m),
@@ -189,6 +190,7 @@ def fuse(
         out.update(
             status="registered",
             method="best_part",
+            pose_source=out["best_source"],
             homography=Hb.tolist(),
             inliers=best["inliers"],
             matches=best.get("matches"),
