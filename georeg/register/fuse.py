@@ -135,10 +135,10 @@ def fuse(
         guide=(Hb, float(fc.get("guide_radius_m", 30.0))),
     )
     out["fused_candidate"] = {k: v for k, v in rec.items() if k != "homography"}
-    # one model choice: the re-match is one more candidate and replaces the best part only when
-    # it explains at least as many matches and is at least as significant. Its NFA is conditional
-    # on the guide, so fewer inliers alone disqualify it: SIFT re-matches of 4 and 6 inliers had
-    # replaced rift poses of 15 and 8 that guided them (SRIF wide oi 57, 77: 16 px off)
+    # one model choice: the re-match is one more candidate. Its NFA is conditional on the guide,
+    # so when it explains fewer matches or is less significant than the best part it may only
+    # refine that pose (median move <= the inlier threshold), not move it: SIFT re-matches of 4
+    # and 6 inliers had moved rift poses of 15 and 8 by 16 map px (SRIF wide oi 57, 77)
     best_nfa, best_inl = best.get("log10_nfa"), int(best.get("inliers") or 0)
     why = []
     if rec["accepted"] and int(rec.get("inliers") or 0) < best_inl:
@@ -146,7 +146,13 @@ def fuse(
     if (rec["accepted"] and best_nfa is not None and rec.get("log10_nfa") is not None
             and float(rec["log10_nfa"]) > float(best_nfa)):  # fmt: skip
         why.append(f"log10 NFA {rec['log10_nfa']:.1f} > the best part's {best_nfa:.1f}")
-    weaker = bool(why)
+    weaker = False
+    if why and fit is not None and fit.H is not None:
+        move = disagreement_m(fit.H, Hb, grid)["median"]
+        limit = float((conf.get("ransac") or {}).get("reproj_px", 3.0)) * source.gsd_m
+        out["fused_candidate"]["moved_m"] = move
+        weaker = move > limit
+        why.append(f"it moves the pose by {move:.3g} > {limit:.3g} map units")
     if weaker:
         rec = {**rec, "reason": "; ".join(why)}
         out["fused_candidate"]["kept"] = False
