@@ -593,7 +593,12 @@ def read_map_features(read_window: Any, bounds: tuple[float, float, float, float
                 continue
             gray, A = got
             m_px = float(np.sqrt(abs(np.linalg.det(A[:2, :2]))))
-            u8 = window_u8(gray)
+            # one affine map of the values to 1..255 (the window's own min and max): phase
+            # congruency is invariant to it, a percentile clip is not (the workflow lost 3 of 50
+            # SRIF oi poses the source alone finds on the same 8-bit mosaic, one inlier each)
+            ok = np.isfinite(gray)
+            lv = (float(gray[ok].min()), float(gray[ok].max())) if ok.any() else None
+            u8 = window_u8(gray, lv)
             f = min(1.0, m_px / g)  # the orthophoto shrunk to the working GSD when finer
             if f < 1.0:
                 shrunk, ok = _shrink(u8, u8 > 0, f)
