@@ -72,6 +72,9 @@ NULL_FAR_DEG = 25.0
 log = logging.getLogger(__name__)
 
 #: the settings the map's features depend on (the key of their cache)
+#: the map features' code version in the cache key: a change of how they are computed (v2: the
+#: windows' affine 1..255 map) must not read features cached by an earlier version
+CACHE_VERSION = 2
 FEATURE_KEYS = ("nscale", "norient", "min_wavelength", "mult", "sigma_onf", "k", "g", "cut_off",
                 "kp_per_mpx", "max_kp", "grid", "patch", "cells", "map_window_px")  # fmt: skip
 _MEMO: dict[str, tuple[np.ndarray, np.ndarray, float, np.ndarray]] = {}
@@ -624,15 +627,16 @@ def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g:
     """``read_map_features`` kept per orthophoto (``view.ortho_id``; None: computed each time):
     the last map in memory and, when ``view.cache_dir`` is set, every map on disk
     (``rift_<key>.npz``, written through ``georeg.io.atomic.atomic_path``, so parallel jobs may
-    race safely). The key: the orthophoto, ``bounds``, ``g``, the view's feature GSD and
-    ``FEATURE_KEYS``. Returns as ``read_map_features`` (stored at full precision: a result does
-    not depend on whether they were computed now or read back)."""
+    race safely). The key: the orthophoto, ``bounds``, ``g``, the view's feature GSD,
+    ``FEATURE_KEYS`` and ``CACHE_VERSION``. Returns as ``read_map_features`` (stored at full
+    precision: a result does not depend on whether they were computed now or read back)."""
     c = rift_conf(conf)
     oid = view.ortho_id
     if oid is None:
         return read_map_features(view.read_window, bounds, g, c)
     blob = json.dumps([oid, [round(float(v), 6) for v in bounds], round(g, 9),
-                       round(float(view.source.gsd_m), 9), [c[k] for k in FEATURE_KEYS]])  # fmt: skip
+                       round(float(view.source.gsd_m), 9), [c[k] for k in FEATURE_KEYS],
+                       CACHE_VERSION])  # fmt: skip
     key = hashlib.sha256(blob.encode()).hexdigest()[:20]
     if key in _MEMO:
         return _MEMO[key]
