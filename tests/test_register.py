@@ -215,6 +215,32 @@ def test_fused_rematch_moves_the_best_part_only_when_as_strong(synthetic_map):
         assert fused["pose_source"] == ("rift" if expect == "best_part" else "features")
 
 
+def test_disagreeing_parts_are_each_rematched_and_the_whole_query_decides(synthetic_map):
+    """Two accepted parts at different places: the full query is re-matched around each, and the
+    re-match with the lowest NFA wins even when its part was the less significant one (SRIF oo
+    pair 129: the re-match around the more significant part was 34 px off)."""
+    img, tr, src = synthetic_map
+    q, Minv = warp_query(img[100:260, 120:300], 1.0, 30.0)
+    Minv = np.array([[1, 0, 120], [0, 1, 100], [0, 0, 1]]) @ Minv
+    conf = reg_conf()
+    parts = [search.search_one_part(q, k, src, conf, None, [1.0], 5) for k in range(2)]
+    full = query_features(q, (0, q.shape[0]), [1.0], None)
+    parts, _ = fuse_mod.whole_query_fallback(full, src, parts, conf, None, 5)
+    right = dict(next(p for p in parts if p.get("accepted")))
+    H_wrong = np.array([[1, 0, 60 * tr.a], [0, 1, -45 * tr.a], [0, 0, 1.0]]) @ np.array(right["homography"])
+    wrong = {**right, "part": 0, "rows": [0, q.shape[0] // 2], "homography": H_wrong.tolist(),
+             "log10_nfa": -1e4}  # fmt: skip
+    right.update(part=1, rows=[q.shape[0] // 2, q.shape[0]], log10_nfa=-5.0)
+    fused = fuse(full, src, [wrong, right], conf, None)
+    assert fused["status"] == "registered" and fused["best_part"] == 1
+    assert [r["part"] for r in fused["rematches"]] == [0, 1]
+    assert np.median(error_px(np.array(fused["homography"]), Minv, tr, q)) < 1.0
+    # parts that agree: one re-match, around the best
+    near = {**wrong, "homography": right["homography"]}
+    fused = fuse(full, src, [near, right], conf, None)
+    assert fused["best_part"] == 0 and "rematches" not in fused
+
+
 def test_query_features_pool_a_band_stack():
     a, b = texture((120, 140), seed=1), texture((120, 140), seed=2)
     fa = query_features(a, (10, 90), [1.0], FEAT)

@@ -120,20 +120,33 @@ def fuse(
             best["part"],
             tol,
         )
-    # re-match the full query in the winning neighbourhood
+    # re-match the full query around the best part and around each accepted part that disagrees
+    # with it (two parts at different places: at most one is right, and a part's fit may hold
+    # on its own rows only; SRIF oo pair 129: a 13-inlier upper part 49 m from a 9-inlier lower
+    # one, the re-match around the upper one 34 px off). The whole query's re-match decides:
+    # the lowest NFA, each counted as one of the re-matches tried
     margin = float(fc.get("margin_m", 50.0))
-    region = footprint_bounds(Hb, width, height, margin)
-    rec, m, fit = verify(
-        full,
-        source,
-        region,
-        conf,
-        gsd_m,
-        n_candidates=1,
-        seed=seed,
-        max_matches=int(fc.get("max_matches", 0)),
-        guide=(Hb, float(fc.get("guide_radius_m", 30.0))),
-    )
+    guides = [best] + [p for p in acc if p["part"] not in agree]
+    tries = []
+    for g in guides:
+        Hg = Hs[g["part"]]
+        reg = footprint_bounds(Hg, width, height, margin)
+        got = verify(full, source, reg, conf, gsd_m, n_candidates=len(guides), seed=seed,
+                     max_matches=int(fc.get("max_matches", 0)),
+                     guide=(Hg, float(fc.get("guide_radius_m", 30.0))))  # fmt: skip
+        tries.append((g, reg, *got))
+    ok = [t for t in tries if t[2]["accepted"]]
+    g, region, rec, m, fit = min(ok, key=lambda t: (t[2]["log10_nfa"], -t[2]["inliers"])) if ok else tries[0]
+    if len(tries) > 1:
+        out["rematches"] = [{"part": t[0]["part"], "accepted": t[2]["accepted"],
+                             "inliers": t[2].get("inliers"), "log10_nfa": t[2].get("log10_nfa")}
+                            for t in tries]  # fmt: skip
+    if g is not best:  # the whole query sides with a part the best one disagreed with
+        best, Hb = g, Hs[g["part"]]
+        out["best_part"] = best["part"]
+        out["best_source"] = best.get("method") or "features"
+        out["agreeing_parts"] = [p["part"] for p in acc
+                                 if disagreement_m(Hb, Hs[p["part"]], grid)["median"] <= tol]  # fmt: skip
     out["fused_candidate"] = {k: v for k, v in rec.items() if k != "homography"}
     # one model choice: the re-match is one more candidate. Its NFA is conditional on the guide,
     # so when it explains fewer matches or is less significant than the best part it may only
