@@ -187,10 +187,9 @@ def test_small_query_searched_whole_then_fused_and_idle_part_recorded(synthetic_
     assert np.median(error_px(np.array(fused["homography"]), Minv, tr, q)) < 1.0
 
 
-def test_fused_rematch_moves_the_best_part_only_when_as_strong(synthetic_map):
-    """One model choice: the full-query re-match around the best part is one more candidate; with
-    fewer inliers or a higher NFA than the part it may refine the part's pose (a move within the
-    inlier threshold) but not move it (rift poses moved 16 px: SRIF wide oi 57 and 77)."""
+def _whole_query_parts(synthetic_map):
+    """A 30-deg query of the synthetic map searched whole (one accepted part): (q, Minv, tr,
+    src, conf, full query features, parts)."""
     img, tr, src = synthetic_map
     q, Minv = warp_query(img[100:260, 120:300], 1.0, 30.0)
     Minv = np.array([[1, 0, 120], [0, 1, 100], [0, 0, 1]]) @ Minv
@@ -198,6 +197,14 @@ def test_fused_rematch_moves_the_best_part_only_when_as_strong(synthetic_map):
     parts = [search.search_one_part(q, k, src, conf, None, [1.0], 5) for k in range(2)]
     full = query_features(q, (0, q.shape[0]), [1.0], None)
     parts, _ = fuse_mod.whole_query_fallback(full, src, parts, conf, None, 5)
+    return q, Minv, tr, src, conf, full, parts
+
+
+def test_fused_rematch_moves_the_best_part_only_when_as_strong(synthetic_map):
+    """One model choice: the full-query re-match around the best part is one more candidate; with
+    fewer inliers or a higher NFA than the part it may refine the part's pose (a move within the
+    inlier threshold) but not move it (rift poses moved 16 px: SRIF wide oi 57 and 77)."""
+    q, Minv, tr, src, conf, full, parts = _whole_query_parts(synthetic_map)
     best = next(p for p in parts if p.get("accepted"))
     H0, n = np.array(best["homography"]), best["inliers"]
     cases = [  # (part's pose moved by map px, its log10 NFA, its inliers, expected)
@@ -219,13 +226,7 @@ def test_disagreeing_parts_are_each_rematched_and_the_whole_query_decides(synthe
     """Two accepted parts at different places: the full query is re-matched around each, and the
     re-match with the lowest NFA wins even when its part was the less significant one (SRIF oo
     pair 129: the re-match around the more significant part was 34 px off)."""
-    img, tr, src = synthetic_map
-    q, Minv = warp_query(img[100:260, 120:300], 1.0, 30.0)
-    Minv = np.array([[1, 0, 120], [0, 1, 100], [0, 0, 1]]) @ Minv
-    conf = reg_conf()
-    parts = [search.search_one_part(q, k, src, conf, None, [1.0], 5) for k in range(2)]
-    full = query_features(q, (0, q.shape[0]), [1.0], None)
-    parts, _ = fuse_mod.whole_query_fallback(full, src, parts, conf, None, 5)
+    q, Minv, tr, src, conf, full, parts = _whole_query_parts(synthetic_map)
     right = dict(next(p for p in parts if p.get("accepted")))
     H_wrong = np.array([[1, 0, 60 * tr.a], [0, 1, -45 * tr.a], [0, 0, 1.0]]) @ np.array(right["homography"])
     wrong = {**right, "part": 0, "rows": [0, q.shape[0] // 2], "homography": H_wrong.tolist(),
