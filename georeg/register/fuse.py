@@ -109,10 +109,16 @@ def fuse(
     best = min(acc, key=lambda p: (p.get("log10_nfa") or 0.0, -p["inliers"]))
     Hb = Hs[best["part"]]
     tol = float(fc.get("agree_m", 25.0))
-    agree = [p["part"] for p in acc if disagreement_m(Hb, Hs[p["part"]], grid)["median"] <= tol]
-    out["best_part"] = best["part"]
-    out["best_source"] = best.get("method") or "features"
-    out["agreeing_parts"] = agree
+
+    def set_best(p: dict[str, Any]) -> list[int]:
+        """Record ``p`` as the best part; the parts that agree with it."""
+        agreeing = [q["part"] for q in acc
+                    if disagreement_m(Hs[p["part"]], Hs[q["part"]], grid)["median"] <= tol]  # fmt: skip
+        out.update(best_part=p["part"], best_source=p.get("method") or "features",
+                   agreeing_parts=agreeing)  # fmt: skip
+        return agreeing
+
+    agree = set_best(best)
     if len(acc) > 1 and len(agree) < len(acc):
         log.warning(
             "parts %s disagree with part %s by more than %.0f m",
@@ -125,15 +131,14 @@ def fuse(
     # on its own rows only; SRIF oo pair 129: a 13-inlier upper part 49 m from a 9-inlier lower
     # one, the re-match around the upper one 34 px off). The whole query's re-match decides:
     # the lowest NFA, each counted as one of the re-matches tried
-    margin = float(fc.get("margin_m", 50.0))
+    margin, radius = float(fc.get("margin_m", 50.0)), float(fc.get("guide_radius_m", 30.0))
     guides = [best] + [p for p in acc if p["part"] not in agree]
     tries = []
     for g in guides:
         Hg = Hs[g["part"]]
         reg = footprint_bounds(Hg, width, height, margin)
         got = verify(full, source, reg, conf, gsd_m, n_candidates=len(guides), seed=seed,
-                     max_matches=int(fc.get("max_matches", 0)),
-                     guide=(Hg, float(fc.get("guide_radius_m", 30.0))))  # fmt: skip
+                     max_matches=int(fc.get("max_matches", 0)), guide=(Hg, radius))  # fmt: skip
         tries.append((g, reg, *got))
     ok = [t for t in tries if t[2]["accepted"]]
     g, region, rec, m, fit = min(ok, key=lambda t: (t[2]["log10_nfa"], -t[2]["inliers"])) if ok else tries[0]
@@ -143,10 +148,7 @@ def fuse(
                             for t in tries]  # fmt: skip
     if g is not best:  # the whole query sides with a part the best one disagreed with
         best, Hb = g, Hs[g["part"]]
-        out["best_part"] = best["part"]
-        out["best_source"] = best.get("method") or "features"
-        out["agreeing_parts"] = [p["part"] for p in acc
-                                 if disagreement_m(Hb, Hs[p["part"]], grid)["median"] <= tol]  # fmt: skip
+        set_best(best)
     out["fused_candidate"] = {k: v for k, v in rec.items() if k != "homography"}
     # one model choice: the re-match is one more candidate. Its NFA is conditional on the guide,
     # so when it explains fewer matches or is less significant than the best part it may only

@@ -71,10 +71,10 @@ NULL_FAR_DEG = 25.0
 
 log = logging.getLogger(__name__)
 
-#: the settings the map's features depend on (the key of their cache)
 #: the map features' code version in the cache key: a change of how they are computed (v2: the
 #: windows' affine 1..255 map) must not read features cached by an earlier version
 CACHE_VERSION = 2
+#: the settings the map's features depend on (the key of their cache)
 FEATURE_KEYS = ("nscale", "norient", "min_wavelength", "mult", "sigma_onf", "k", "g", "cut_off",
                 "kp_per_mpx", "max_kp", "grid", "patch", "cells", "map_window_px")  # fmt: skip
 _MEMO: dict[str, tuple[np.ndarray, np.ndarray, float, np.ndarray]] = {}
@@ -599,9 +599,8 @@ def read_map_features(read_window: Any, bounds: tuple[float, float, float, float
             # one affine map of the values to 1..255 (the window's own min and max): phase
             # congruency is invariant to it, a percentile clip is not (the workflow lost 3 of 50
             # SRIF oi poses the source alone finds on the same 8-bit mosaic, one inlier each)
-            ok = np.isfinite(gray)
-            lv = (float(gray[ok].min()), float(gray[ok].max())) if ok.any() else None
-            u8 = window_u8(gray, lv)
+            v = gray[np.isfinite(gray)]
+            u8 = window_u8(gray, (float(v.min()), float(v.max())) if v.size else None)
             f = min(1.0, m_px / g)  # the orthophoto shrunk to the working GSD when finer
             if f < 1.0:
                 shrunk, ok = _shrink(u8, u8 > 0, f)
