@@ -500,6 +500,10 @@ def main(argv: list[str] | None = None) -> int:
                     "asked are taken, not run again (a run cut by the machine's load)")
     ap.add_argument("--reuse-methods", default="sift_plain,wf_default",
                     help="which methods' records --reuse may take")
+    ap.add_argument("--rerun-rift", action="store_true",
+                    help="with --reuse: run again the queries on which the rift source ran (a "
+                    "change to rift alone cannot change the others: it runs only when nothing "
+                    "else was accepted)")
     ap.add_argument("--table", help="print the table of a .jsonl record file and stop")
     a = ap.parse_args(argv)
     if a.table:
@@ -545,6 +549,8 @@ def main(argv: list[str] | None = None) -> int:
         for r in read_records(a.reuse):
             # wide-area records are judged against every place of the query since the overlap
             # check: never reused from a run before it
+            if a.rerun_rift and r.get("per_rotation"):
+                continue
             if r["method"] in a.reuse_methods.split(",") and "places" in r or (
                 r["method"] in a.reuse_methods.split(",") and not r["group"].startswith("wide")
             ):

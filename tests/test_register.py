@@ -128,6 +128,29 @@ def test_fit_homography_recovers_known_mapping_with_outliers():
         assert f2.n_inliers >= 58
 
 
+def test_inliers_in_a_strip_refused_unless_the_evidence_is_strong():
+    """Inliers in a thin strip (a road) leave a homography free across it: refused, whatever
+    the NFA, unless the caller's model is fixed by a strip and the log10 NFA is below its
+    ``strip_log_nfa`` (rift's rigid poses)."""
+    H = np.array([[0.8, 0, 1000.0], [0, -0.8, 5000.0], [0, 0, 1]])
+    rng = np.random.default_rng(0)
+    strip = np.c_[rng.uniform(0, 800, 30), rng.uniform(290, 310, 30)]  # 20 px of a 600 px side
+    res = np.r_[np.full(30, 0.8), np.full(70, 5000.0)]
+    conf = {"mode": "nfa", "log_nfa_max": 0.0}
+    d = acceptance.decide(H, res, 30, 2000 * 2000, 800, 600, 0.8, conf, inlier_q_xy=strip)
+    assert not d["accepted"] and "collinear" in d["reason"] and d["log10_nfa"] < -30
+    d = acceptance.decide(H, res, 30, 2000 * 2000, 800, 600, 0.8, conf, inlier_q_xy=strip,
+                          strip_log_nfa=-6.0)  # fmt: skip
+    assert d["accepted"] and d["strip_accepted"]
+    weak = np.r_[np.full(6, 2.5), np.full(94, 5000.0)]
+    d = acceptance.decide(H, weak, 6, 2000 * 2000, 800, 600, 0.8, {**conf, "log_nfa_max": 5.0},
+                          inlier_q_xy=strip[:6], strip_log_nfa=-6.0)  # fmt: skip
+    assert d["log10_nfa"] < 5.0 and d["log10_nfa"] > -6.0
+    assert not d["accepted"] and "collinear" in d["reason"]
+    spread = np.c_[rng.uniform(0, 800, 30), rng.uniform(0, 600, 30)]
+    assert acceptance.decide(H, res, 30, 2000 * 2000, 800, 600, 0.8, conf, inlier_q_xy=spread)["accepted"]
+
+
 def test_plausibility_handedness_scale_and_nfa():
     conf = {"scale_tolerance": 0.3}
     # north-up nadir image at 0.8 m: col -> +x, row -> -y; det < 0

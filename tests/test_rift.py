@@ -277,6 +277,22 @@ def test_pucallpa_blanked_map_rejected_by_the_measured_null(shared_data):
     assert np.median(err) <= 5.0, np.median(err)
 
 
+def test_pucallpa_blanked_strip_stays_refused(shared_data):
+    """Landsat Pucallpa (bench_devset, tuning half): the 1995 SWIR crop on the 2015 map with the
+    crop's place blanked reaches log10 NFA -2.6 with 5 inliers in a thin strip, 5.6 decades below
+    every other rotation: only the strip test refuses it, and a strip is accepted only below
+    log_nfa_max - null_margin."""
+    if not (shared_data / "swir_dates" / "landsat_pucallpa" / "2015.tif").exists():
+        pytest.skip("Landsat Pucallpa absent")
+    q, sc = _pucallpa("puc_1995_on_2015_1_1.6um_blanked")
+    u8 = next(iter(q.bands.values()))
+    r = rift.register(u8, sc.map_gray, q.gsd / sc.map_gsd, _acc(), {})
+    assert not r["accepted"] and "collinear" in r["decision"]["reason"], r["decision"]
+    assert r["log10_nfa"] < rift.DEFAULTS["log_nfa_max"]
+    assert r["log10_nfa"] < r["null_log10_nfa"] - rift.DEFAULTS["null_margin"]
+    assert r["log10_nfa"] > rift.DEFAULTS["log_nfa_max"] - rift.DEFAULTS["null_margin"]
+
+
 def test_pucallpa_near_miss_polished_on_the_orthophoto(shared_data):
     """Landsat Pucallpa (bench_devset, tuning half): the 2005 SWIR crop on the 2010 map is
     accepted on 8 cells 6.2 px off (its rotation 5 deg off); the dense refit to the map's CFOG

@@ -196,11 +196,14 @@ def decide(
     n_candidates: int = 1,
     origin: tuple[float, float] = (0.0, 0.0),
     inlier_q_xy: np.ndarray | None = None,
+    strip_log_nfa: float = -math.inf,
 ) -> dict[str, Any]:
     """Accept or reject one candidate; returns the decision and every number it used.
 
     ``conf`` is ``register.acceptance``: mode ``nfa`` (log10 NFA < log_nfa_max and plausible) or
-    ``paper`` (inliers > paper_min_inliers, nothing else).
+    ``paper`` (inliers > paper_min_inliers, nothing else). Nearly collinear inliers
+    (``inlier_q_xy``) are refused unless the log10 NFA is below ``strip_log_nfa`` (a model that a
+    strip of inliers fixes, e.g. a rigid pose at a known GSD, when its evidence is strong).
     """
     mode = str(conf.get("mode", "nfa"))
     out: dict[str, Any] = {"mode": mode, "inliers": int(n_inliers)}
@@ -233,7 +236,10 @@ def decide(
         out["spread"] = spread
         lo_ratio = float(conf.get("min_spread_ratio", 0.2))
         lo_frac = float(conf.get("min_spread_frac", 0.05))
-        if spread["minor_major"] < lo_ratio or spread["minor_frac"] < lo_frac:
+        strip = spread["minor_major"] < lo_ratio or spread["minor_frac"] < lo_frac
+        if strip and lnfa < strip_log_nfa:
+            out["strip_accepted"] = True
+        elif strip:
             reasons.append(
                 f"inliers nearly collinear (minor/major spread {spread['minor_major']:.2f} < "
                 f"{lo_ratio} or minor spread {spread['minor_frac']:.1%} of the part < {lo_frac:.0%})"

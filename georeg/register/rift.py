@@ -483,7 +483,13 @@ def register(
     kc = int(c["candidates"])
     acc = {**acc_conf, "log_nfa_max": min(float(acc_conf.get("log_nfa_max", 0.0)), float(c["log_nfa_max"])),
            "min_spread_ratio": 0.0}  # a rigid pose at the known GSD is fixed by an elongated set of
-    # inliers (log10 NFA down to -46 was refused as "nearly collinear"); only a line is refused
+    # inliers (log10 NFA down to -46 was refused as "nearly collinear"); a thin strip (minor
+    # spread < acceptance.min_spread_frac of the query: a road, a river bank) only while the pose
+    # is weak, where chance alignments along one linear feature live (Landsat Pucallpa, the
+    # query's place blanked: 5 inliers in a strip at log10 NFA -2.6; no negative of any set
+    # reached -5.1 at any rotation; SRIF optical-optical 35 had been refused at -16.3, 11 inliers
+    # on 4.9 % of the query): accepted below log_nfa_max - null_margin
+    strong = float(acc["log_nfa_max"]) - float(c["null_margin"])
     area = float((map_u8 > 0).sum()) if area is None else float(area)
     n_rot = int(c["rotations"])
     h, w = query_u8.shape
@@ -517,7 +523,7 @@ def register(
         dec = acceptance.decide(to_m @ H, capped, int(inl.sum()), area / kc, w, h,
                                 gsd_m if gsd_m is not None else scale * map_gsd_m, acc,
                                 n_candidates=n_rot + int(tests_before),
-                                inlier_q_xy=q[inl])  # fmt: skip
+                                inlier_q_xy=q[inl], strip_log_nfa=strong)  # fmt: skip
         lnfa = float(dec.get("log10_nfa", math.inf))
         per_rot.append((angle, lnfa))
         key = (bool(dec["accepted"]), -lnfa)
