@@ -519,3 +519,21 @@ def test_dense_search_finds_real_swir(enmap):
     r = dense_search(q, 0.5, v8, 10.0)
     assert r is not None and abs(((r.angle_deg - 140.0) + 180) % 360 - 180) <= 10.0
     assert r.log10_nfa < -3
+
+
+def test_kdtree_matches_do_not_depend_on_what_the_process_drew_before():
+    """Above ``FLAT_MAX`` map descriptors the 2-NN search is a randomised kd-tree: its matches
+    must be the same whatever OpenCV's process-wide generator was left at (a library user
+    registering several queries in one process)."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    md = rng.random((matching.FLAT_MAX + 2000, 32), dtype=np.float32)
+    q = rng.random((300, 32), dtype=np.float32)
+    got = []
+    for s in (1, 2):
+        cv2.setRNGSeed(s)
+        cv2.randu(np.zeros((10, 10), np.float32), 0, 1)
+        d, ii = matching.knn2(md)(q)
+        got.append(ii)
+    assert np.array_equal(got[0], got[1])

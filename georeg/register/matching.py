@@ -20,6 +20,16 @@ KnnFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 FLAT_MAX = 60_000  # exact faiss search up to this many map descriptors, FLANN kd-tree beyond
 
 
+def kdtree(desc: np.ndarray) -> Any:
+    """A FLANN randomised kd-tree index (4 trees) over ``desc``. Its split dimensions are drawn
+    from OpenCV's process-wide generator, reseeded here (0) at every build: otherwise an index,
+    and every match through it, depends on what the process drew before (a library user's
+    earlier queries: SRIF wide optical-optical 131 was accepted or not depending on the query
+    registered before it)."""
+    cv2.setRNGSeed(0)
+    return cv2.flann_Index(desc, {"algorithm": 1, "trees": 4})  # FLANN_INDEX_KDTREE
+
+
 def knn2(map_desc: np.ndarray, threads: int = 1) -> KnnFn:
     """A 2-NN searcher over ``map_desc``: exact (faiss flat) when small, FLANN kd-tree when large."""
     md = np.ascontiguousarray(map_desc, dtype=np.float32)
@@ -42,7 +52,7 @@ def knn2(map_desc: np.ndarray, threads: int = 1) -> KnnFn:
             return d, ii
 
         return search
-    flann = cv2.flann_Index(md, {"algorithm": 1, "trees": 4})  # FLANN_INDEX_KDTREE
+    flann = kdtree(md)
 
     def search_flann(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ii, d2 = flann.knnSearch(

@@ -201,10 +201,8 @@ class PlainNearest:
                 self._flat.add(self._desc)
             d2, ii = self._flat.search(q, kk)
         else:
-            import cv2
-
             if self._flat is None:
-                self._flat = cv2.flann_Index(self._desc, {"algorithm": 1, "trees": 4})
+                self._flat = matching.kdtree(self._desc)
             ii, d2 = self._flat.knnSearch(q, kk, params={"checks": 128})
         ii = np.asarray(ii, np.int64)
         cq = np.repeat(np.arange(n, dtype=np.int64), kk)
