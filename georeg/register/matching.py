@@ -18,6 +18,7 @@ import numpy as np
 KnnFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 FLAT_MAX = 60_000  # exact faiss search up to this many map descriptors, FLANN kd-tree beyond
+KDTREE_CHECKS = 128  # leaves a kd-tree search visits (both kd-tree searchers)
 
 
 def kdtree(desc: np.ndarray) -> Any:
@@ -56,7 +57,7 @@ def knn2(map_desc: np.ndarray, threads: int = 1) -> KnnFn:
 
     def search_flann(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ii, d2 = flann.knnSearch(
-            np.ascontiguousarray(q, dtype=np.float32), 2, params={"checks": 128}
+            np.ascontiguousarray(q, dtype=np.float32), 2, params={"checks": KDTREE_CHECKS}
         )
         return np.sqrt(np.maximum(d2, 0.0)), ii.astype(np.int64)
 

@@ -203,7 +203,7 @@ class PlainNearest:
         else:
             if self._flat is None:
                 self._flat = matching.kdtree(self._desc)
-            ii, d2 = self._flat.knnSearch(q, kk, params={"checks": 128})
+            ii, d2 = self._flat.knnSearch(q, kk, params={"checks": matching.KDTREE_CHECKS})
         ii = np.asarray(ii, np.int64)
         cq = np.repeat(np.arange(n, dtype=np.int64), kk)
         ok = ii.ravel() >= 0
