@@ -18,7 +18,9 @@ import numpy as np
 KnnFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 FLAT_MAX = 60_000  # exact faiss search up to this many map descriptors, FLANN kd-tree beyond
-KDTREE_CHECKS = 128  # leaves a kd-tree search visits (both kd-tree searchers)
+KDTREE_CHECKS = 512  # leaves a kd-tree search visits (both kd-tree searchers); 128 lost true
+# neighbours: SRIF wide optical-optical tuning 38/45, 1 false -> 40/45, 0 false at the same CPU s
+# (docs/BENCHMARKS.md "Session 19")
 
 
 def kdtree(desc: np.ndarray) -> Any:
