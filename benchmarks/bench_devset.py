@@ -563,7 +563,7 @@ def main(argv: list[str] | None = None) -> int:
             q = qby[r["query"]]
             r.update(judge(q, by[q.map_scene], {"H": np.array(r["H"]), "accepted": True}))
             r["truth_audit"] = getattr(q, "truth_audit", None)
-    for qi, q in enumerate(queries):
+    for q in queries:
         setting = q.setting  # type: ignore[attr-defined]
         group = setting if setting == "pucallpa" else f"{setting}_{q.name.split('_')[1]}"
         for name in methods:
@@ -572,7 +572,7 @@ def main(argv: list[str] | None = None) -> int:
                 append_record(partial, name, done[(name, q.name)])
                 continue
             c0 = time.process_time()
-            res = run(q, by[q.map_scene], name, a.seed + qi)
+            res = run(q, by[q.map_scene], name, bx.query_seed(a.seed, q.name))
             cpu = time.process_time() - c0
             j = judge(q, by[q.map_scene], res)
             rec = {"query": q.name, "group": group, "half": q.half,  # type: ignore[attr-defined]
