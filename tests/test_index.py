@@ -185,6 +185,28 @@ def test_features_in_and_knn_match_brute_force(synthetic_index):
     assert np.all(f1[:, 1] == -1) and np.all(np.isinf(d1[:, 1]))
 
 
+def test_knn_kdtree_path_is_near_exact_and_seeded(synthetic_index, monkeypatch):
+    """Above ``KNN_FLAT_MAX_PAIRS`` the candidate search is a FLANN kd-tree: nearly the exact
+    neighbours, and the same whatever OpenCV's process-wide generator was left at (a library
+    user's earlier queries)."""
+    import cv2
+
+    import georeg.index.map_index as mi
+
+    idx = synthetic_index["idx"]
+    ids = np.arange(idx.n_features)
+    q = _query(synthetic_index["gray"], 200, 200, 256, 0, 1.0)
+    exact = idx.knn(q.desc, ids, k=2)
+    monkeypatch.setattr(mi, "KNN_FLAT_MAX_PAIRS", 0)
+    got = []
+    for s in (1, 2):
+        cv2.setRNGSeed(s)
+        cv2.randu(np.zeros((10, 10), np.float32), 0, 1)
+        got.append(idx.knn(q.desc, ids, k=2))
+    np.testing.assert_array_equal(got[0][1], got[1][1])
+    assert (got[0][1][:, 0] == exact[1][:, 0]).mean() > 0.95
+
+
 def test_saved_index_loaded_memory_mapped_answers_the_same(synthetic_index, tmp_path):
     idx = synthetic_index["idx"]
     shutil.copytree(idx.path, tmp_path / "copy")

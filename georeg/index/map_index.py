@@ -24,6 +24,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from georeg.index.features import DESC_DIM, DESC_SCALE, dequantize
+from georeg.index.kdtree import kdtree, knn_search
 from georeg.io.atomic import atomic_path
 from georeg.io.errors import InputError
 
@@ -93,7 +94,7 @@ EF_SEARCH = 64
 class WordQuantizer:
     """Nearest visual words of descriptors: exact faiss ``IndexFlatL2`` for small vocabularies,
     faiss ``IndexHNSWFlat`` (M = 32, efSearch ``ef_search``) above ``FLAT_MAX_WORDS``, or an
-    OpenCV FLANN kd-tree (the paper's choice; 4 trees, 128 checks) when asked for
+    OpenCV FLANN kd-tree (the paper's choice; ``georeg.index.kdtree``) when asked for
     ``method="kdtree"``."""
 
     def __init__(
@@ -126,9 +127,7 @@ class WordQuantizer:
                 faiss.omp_set_num_threads(nthreads)
             self._index.hnsw.efSearch = int(ef_search)  # saved with the graph
         else:  # kdtree
-            import cv2
-
-            self._index = cv2.flann_Index(self.centroids, {"algorithm": 1, "trees": 4})
+            self._index = kdtree(self.centroids)
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the faiss structure (flat or HNSW: the built graph, so every reader assigns the
@@ -183,8 +182,7 @@ class WordQuantizer:
         for i in range(0, n, _CHUNK):
             xb = x[i : i + _CHUNK]
             if self.method == "kdtree":
-                idx, d2 = self._index.knnSearch(xb, k, params={"checks": 128})
-                idx, d2 = idx.astype(np.int64), d2.astype(np.float32)
+                idx, d2 = knn_search(self._index, xb, k)
             else:
                 d2, idx = self._index.search(xb, k)
             dist[i : i + len(xb)] = np.sqrt(np.maximum(d2, 0))
@@ -638,7 +636,7 @@ class MapIndex:
         (all features when None). Returns (dist (n, k) float32 Euclidean, fid (n, k) int64 global
         feature ids), nearest first; missing neighbours (fewer than k candidates) are
         (inf, -1). Exact faiss flat search while |query| * |ids| <= ``KNN_FLAT_MAX_PAIRS``,
-        a FLANN kd-tree (approximate, 4 trees, 128 checks) above; never OpenCV BFMatcher.
+        a seeded FLANN kd-tree (approximate, ``georeg.index.kdtree``) above; never OpenCV BFMatcher.
         """
         q = np.ascontiguousarray(dequantize(query_desc), np.float32).reshape(-1, DESC_DIM)
         ids = np.arange(self.n_features) if ids is None else np.unique(np.asarray(ids, np.int64))
@@ -659,10 +657,7 @@ class MapIndex:
                 dist[i : i + len(d2), :kr] = np.sqrt(np.maximum(d2, 0))
                 fid[i : i + len(d2), :kr] = np.where(j >= 0, ids[np.maximum(j, 0)], -1)
         else:
-            import cv2
-
-            fl = cv2.flann_Index(base, {"algorithm": 1, "trees": 4})
-            j, d2 = fl.knnSearch(q, kr, params={"checks": 128})
+            j, d2 = knn_search(kdtree(base), q, kr)
             dist[:, :kr] = np.sqrt(np.maximum(d2, 0))
             fid[:, :kr] = ids[j.astype(np.int64)]
         return dist, fid

@@ -14,25 +14,12 @@ from typing import Any
 import cv2
 import numpy as np
 
+from georeg.index.kdtree import kdtree, knn_search
+
 # knn(query_desc) -> (dist (n,2) L2 (not squared), idx (n,2) positions in the candidate's arrays)
 KnnFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 FLAT_MAX = 60_000  # exact faiss search up to this many map descriptors, FLANN kd-tree beyond
-KDTREE_CHECKS = 512  # leaves a kd-tree search visits (both kd-tree searchers); 128 lost true
-# neighbours: SRIF wide optical-optical tuning 38/45, 1 false -> 40/45, 0 false at the same CPU s
-# (docs/BENCHMARKS.md "Session 19")
-
-
-def kdtree(desc: np.ndarray) -> Any:
-    """A FLANN randomised kd-tree index (4 trees) over ``desc``. Its split dimensions are drawn
-    from OpenCV's process-wide generator, reseeded here (0) at every build: otherwise an index,
-    and every match through it, depends on what the process drew before (a library user's
-    earlier queries: SRIF wide optical-optical 131 was accepted or not depending on the query
-    registered before it)."""
-    cv2.setRNGSeed(0)
-    return cv2.flann_Index(desc, {"algorithm": 1, "trees": 4})  # FLANN_INDEX_KDTREE
-
-
 def knn2(map_desc: np.ndarray, threads: int = 1) -> KnnFn:
     """A 2-NN searcher over ``map_desc``: exact (faiss flat) when small, FLANN kd-tree when large."""
     md = np.ascontiguousarray(map_desc, dtype=np.float32)
@@ -58,10 +45,8 @@ def knn2(map_desc: np.ndarray, threads: int = 1) -> KnnFn:
     flann = kdtree(md)
 
     def search_flann(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        ii, d2 = flann.knnSearch(
-            np.ascontiguousarray(q, dtype=np.float32), 2, params={"checks": KDTREE_CHECKS}
-        )
-        return np.sqrt(np.maximum(d2, 0.0)), ii.astype(np.int64)
+        ii, d2 = knn_search(flann, q, 2)
+        return np.sqrt(np.maximum(d2, 0.0)), ii
 
     return search_flann
 

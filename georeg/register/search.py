@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from georeg.index.features import dequantize, detect_and_describe, resample
+from georeg.index.kdtree import kdtree, knn_search
 from georeg.io.prior import prior_bounds, prior_record
 from georeg.register import acceptance, level, matching
 
@@ -202,8 +203,8 @@ class PlainNearest:
             d2, ii = self._flat.search(q, kk)
         else:
             if self._flat is None:
-                self._flat = matching.kdtree(self._desc)
-            ii, d2 = self._flat.knnSearch(q, kk, params={"checks": matching.KDTREE_CHECKS})
+                self._flat = kdtree(self._desc)
+            ii, d2 = knn_search(self._flat, q, kk)
         ii = np.asarray(ii, np.int64)
         cq = np.repeat(np.arange(n, dtype=np.int64), kk)
         ok = ii.ravel() >= 0
