@@ -9,8 +9,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-#: leaves a kd-tree search visits; 128 lost true neighbours: SRIF wide optical-optical tuning
-#: 38/45, 1 false -> 40/45, 0 false at the same CPU s (docs/BENCHMARKS.md "Session 19")
+#: leaves a kd-tree search visits: 512 returns more of the true neighbours than 128 at the same
+#: CPU s a query; on SRIF wide optical-optical its effect is within the RANSAC seed's noise
+#: (docs/BENCHMARKS.md "Session 19")
 KDTREE_CHECKS = 512
 
 
