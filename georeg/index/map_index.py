@@ -659,7 +659,7 @@ class MapIndex:
         else:
             j, d2 = knn_search(kdtree(base), q, kr)
             dist[:, :kr] = np.sqrt(np.maximum(d2, 0))
-            fid[:, :kr] = ids[j.astype(np.int64)]
+            fid[:, :kr] = ids[j]  # knn_search's ids are int64
         return dist, fid
 
     def knn_words(

@@ -20,6 +20,8 @@ from georeg.index.kdtree import kdtree, knn_search
 KnnFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 FLAT_MAX = 60_000  # exact faiss search up to this many map descriptors, FLANN kd-tree beyond
+
+
 def knn2(map_desc: np.ndarray, threads: int = 1) -> KnnFn:
     """A 2-NN searcher over ``map_desc``: exact (faiss flat) when small, FLANN kd-tree when large."""
     md = np.ascontiguousarray(map_desc, dtype=np.float32)
