@@ -251,12 +251,15 @@ def srif_query(mod: str, i: int, q: np.ndarray, A0: np.ndarray, places: list[np.
 
 
 def build_srif(mods: list[str], wide: bool, pair: bool, per_half: int = 0,
-               block: int = BLOCK) -> tuple[list[bx.Scene], list[bx.Query]]:  # fmt: skip
+               block: int = BLOCK, pool: bool = False) -> tuple[list[bx.Scene], list[bx.Query]]:  # fmt: skip
     """SRIF queries and maps; ``per_half`` > 0: only the first ``per_half`` pairs of each half
     (one block, one mosaic: a run that fits a loaded machine); ``block``: consecutive pairs per
-    mosaic (50: one mosaic of 40 references per half and modality)."""
+    mosaic (50: one mosaic of 40 references per half and modality); ``pool``: one wide-area
+    mosaic per half holding the in-map references of every modality in ``mods`` (each
+    modality's left-out pairs as without it), every query of the half searched in all of it."""
     scenes: list[bx.Scene] = []
     queries: list[bx.Query] = []
+    pooled: dict[str, list[tuple[str, int, tuple[Any, ...], bool]]] = {}
     for mod in mods:
         idx = srif_pairs(mod)
         for half in ("tuning", "checking"):
@@ -283,30 +286,56 @@ def build_srif(mods: list[str], wide: bool, pair: bool, per_half: int = 0,
                         qq.setting = "pair"  # type: ignore[attr-defined]
                         queries.append(qq)
                 if wide:
-                    inside = [i for k, i in enumerate(pairs) if (k + 1) % LEFT_OUT_EVERY]
-                    offs, (H, W) = pack([data[i][0].shape for i in inside])
-                    mosaic = np.zeros((H, W), np.uint8)
-                    for i, (r, c) in zip(inside, offs, strict=True):
-                        ref = data[i][0]
-                        mosaic[r : r + ref.shape[0], c : c + ref.shape[1]] = np.maximum(ref, 1)
-                    name = f"{mod}_mosaic_{pairs[0]}_{pairs[-1]}"
-                    scenes.append(bx.Scene(name, {}, MOSAIC_GSD, mosaic, MOSAIC_GSD,
-                                           lambda p: p, mod))  # fmt: skip
-                    where = dict(zip(inside, offs, strict=True))
-                    over = overlaps({i: data[i][0] for i in pairs})
-                    for i in pairs:
-                        _, q, A0 = data[i]
-                        places = []  # its own reference first, then any overlapping one
-                        for j in sorted(where, key=lambda j: j != i):
-                            r, c = where[j]
-                            T = np.eye(3) if j == i else over.get((i, j))
-                            if T is not None:
-                                places.append(np.array([[1, 0, c], [0, 1, r], [0, 0, 1.0]]) @ T)
-                        qq = srif_query(mod, i, q, A0, places, name, i not in where, audits[i])
-                        qq.name = "wide_" + qq.name
-                        qq.setting = "wide"  # type: ignore[attr-defined]
-                        queries.append(qq)
+                    items = [(mod, i, (*data[i], audits[i]), (k + 1) % LEFT_OUT_EVERY != 0)
+                             for k, i in enumerate(pairs)]  # fmt: skip
+                    if pool:
+                        pooled.setdefault(half, []).extend(items)
+                    else:
+                        name = f"{mod}_mosaic_{pairs[0]}_{pairs[-1]}"
+                        s, q = _wide_mosaic(name, items)
+                        scenes += s
+                        queries += q
+    for half, items in pooled.items():
+        s, q = _wide_mosaic(f"{'_'.join(mods)}_mosaic_{half}", items)
+        scenes += s
+        queries += q
     return scenes, queries
+
+
+_MOD_KEY = {"oo": 0, "oi": 1000, "od": 2000}  # (modality, pair) -> one int key for overlaps
+
+
+def _wide_mosaic(name: str, items: list[tuple[str, int, tuple[Any, ...], bool]]
+                 ) -> tuple[list[bx.Scene], list[bx.Query]]:  # fmt: skip
+    """One wide-area mosaic of the in-map references among ``items`` ((modality, pair,
+    (reference, query, A0, audit), in map)) and every item's query searched in all of it."""
+    mixed = len({m for m, _, _, _ in items}) > 1
+    key = {(m, i): _MOD_KEY[m] * mixed + i for m, i, _, _ in items}
+    refs = {key[(m, i)]: d[0] for m, i, d, _ in items}
+    inside = [key[(m, i)] for m, i, _, keep in items if keep]
+    offs, (H, W) = pack([refs[k].shape for k in inside])
+    mosaic = np.zeros((H, W), np.uint8)
+    for k, (r, c) in zip(inside, offs, strict=True):
+        ref = refs[k]
+        mosaic[r : r + ref.shape[0], c : c + ref.shape[1]] = np.maximum(ref, 1)
+    mod0 = items[0][0]
+    sc = bx.Scene(name, {}, MOSAIC_GSD, mosaic, MOSAIC_GSD, lambda p: p, mod0)
+    where = dict(zip(inside, offs, strict=True))
+    over = overlaps(refs)
+    queries = []
+    for m, i, (_, q, A0, audit), _ in items:
+        k = key[(m, i)]
+        places = []  # its own reference first, then any overlapping one
+        for j in sorted(where, key=lambda j: j != k):
+            r, c = where[j]
+            T = np.eye(3) if j == k else over.get((k, j))
+            if T is not None:
+                places.append(np.array([[1, 0, c], [0, 1, r], [0, 0, 1.0]]) @ T)
+        qq = srif_query(m, i, q, A0, places, name, k not in where, audit)
+        qq.name = "wide_" + qq.name
+        qq.setting = "wide"  # type: ignore[attr-defined]
+        queries.append(qq)
+    return [sc], queries
 
 
 def mosaic_geotransform(sc: bx.Scene) -> list[float]:
@@ -495,6 +524,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="SRIF: the first N pairs of each half per modality (0 = all 50)")
     ap.add_argument("--block", type=int, default=BLOCK,
                     help="SRIF wide: consecutive pairs per mosaic (every 5th left out)")
+    ap.add_argument("--pool", action="store_true",
+                    help="srif_wide: one mosaic per half of every chosen modality's references")
     ap.add_argument("--puc-first", type=int, default=0, help="Pucallpa: skip the first date pairs")
     ap.add_argument("--puc-crops", type=int, default=2, help="Pucallpa: crops per date pair")
     ap.add_argument("--reuse", default="",
@@ -520,7 +551,8 @@ def main(argv: list[str] | None = None) -> int:
     queries: list[bx.Query] = []
     mods = a.modalities.split(",")
     if "srif_wide" in sets or "srif_pair" in sets:
-        s, q = build_srif(mods, "srif_wide" in sets, "srif_pair" in sets, a.per_half, a.block)
+        s, q = build_srif(mods, "srif_wide" in sets, "srif_pair" in sets, a.per_half, a.block,
+                          a.pool)
         scenes += s
         queries += q
     if "pucallpa" in sets:
