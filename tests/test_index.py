@@ -207,6 +207,17 @@ def test_knn_kdtree_path_is_near_exact_and_seeded(synthetic_index, monkeypatch):
     assert (got[0][1][:, 0] == exact[1][:, 0]).mean() > 0.95
 
 
+def test_kdtree_search_of_no_query_rows_is_empty():
+    """A query part without descriptors searched in a large map's kd-tree (SRIF optical-depth 177
+    in an 80-reference mosaic crashed: FLANN returns None for no rows)."""
+    from georeg.register import matching
+
+    rng = np.random.default_rng(0)
+    md = rng.random((matching.FLAT_MAX + 10, 8)).astype(np.float32)
+    d, ii = matching.knn2(md)(np.empty((0, 8), np.float32))
+    assert d.shape == (0, 2) and ii.shape == (0, 2) and ii.dtype == np.int64
+
+
 def test_saved_index_loaded_memory_mapped_answers_the_same(synthetic_index, tmp_path):
     idx = synthetic_index["idx"]
     shutil.copytree(idx.path, tmp_path / "copy")

@@ -26,7 +26,10 @@ def kdtree(desc: np.ndarray) -> Any:
 
 
 def knn_search(index: Any, q: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """(ids int64, squared distances float32), each (n, k), of ``q`` in a ``kdtree`` index."""
+    """(ids int64, squared distances float32), each (n, k), of ``q`` in a ``kdtree`` index (no
+    query rows: empty arrays; FLANN itself returns None for them)."""
+    if len(q) == 0:
+        return np.empty((0, int(k)), np.int64), np.empty((0, int(k)), np.float32)
     ii, d2 = index.knnSearch(np.ascontiguousarray(q, np.float32), int(k),
                              params={"checks": KDTREE_CHECKS})  # fmt: skip
     return np.asarray(ii, np.int64), np.asarray(d2, np.float32)
