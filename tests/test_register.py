@@ -245,6 +245,24 @@ def test_fused_rematch_moves_the_best_part_only_when_as_strong(synthetic_map):
         assert fused["pose_source"] == ("rift" if expect == "best_part" else "features")
 
 
+def test_best_part_pose_must_hold_over_the_whole_query(synthetic_map):
+    """When the re-match does not replace the best part's pose, that pose is the whole query's
+    only if it is a plausible mapping of the whole query: a perspective that changes the scale
+    several times across it is not registered (SRIF oo 77 in a 120-reference mosaic)."""
+    q, Minv, tr, src, conf, full, parts = _whole_query_parts(synthetic_map)
+    best = next(p for p in parts if p.get("accepted"))
+    H0, n = np.array(best["homography"]), best["inliers"]
+    shift = np.array([[1, 0, 8.0 * tr.a], [0, 1, 0], [0, 0, 1.0]])
+    for tilt, expect in ((0.0, "registered"), (0.004, "not_found")):
+        persp = np.array([[1, 0, 0], [0, 1, 0], [tilt, 0, 1.0]])  # in query px
+        best.update(homography=(shift @ H0 @ persp).tolist(), log10_nfa=-1e4, inliers=n)
+        fused = fuse(full, src, parts, conf, None)
+        assert fused["status"] == expect, tilt
+        if expect == "not_found":
+            assert fused["homography"] is None and "whole query" in fused["reason"]
+            assert "scale changes" in fused["reason"]
+
+
 def test_disagreeing_parts_are_each_rematched_and_the_whole_query_decides(synthetic_map):
     """Two accepted parts at different places: the full query is re-matched around each, and the
     re-match with the lowest NFA wins even when its part was the less significant one (SRIF oo

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from georeg.io.prior import prior_bounds, prior_record
-from georeg.register import level, lidar_check, matching, ortho_check, rift, small
+from georeg.register import acceptance, level, lidar_check, matching, ortho_check, rift, small
 from georeg.register.search import (
     MapSource,
     MapView,
@@ -204,7 +204,21 @@ def fuse(
             after[str(p["part"])] = entry
         out["disagreement_after"] = after
     else:
-        # the fused fit failed: keep the best part (its homography already passed acceptance)
+        # the fused fit failed: keep the best part (its homography passed acceptance over the
+        # part), if it is a plausible mapping of the whole query too: a part's homography may
+        # hold on its own rows only (SRIF oo 77 in a 120-reference mosaic: a 14-inlier part whose
+        # scale changes 1.8x across the whole query, 18.6 px off; no true accept of the records
+        # was implausible so: docs/BENCHMARKS.md "Session 20")
+        whole = acceptance.plausibility(Hb, width, height, gsd_m, conf.get("acceptance") or {})
+        if not whole["ok"]:
+            why = "; ".join(whole["reasons"])
+            log.warning("full-query re-match not accepted (%s) and part %s's pose is not a "
+                        "plausible mapping of the whole query (%s): not registered",
+                        rec.get("reason"), best["part"], why)  # fmt: skip
+            out.update(status="not_found", homography=None,
+                       reason=f"part {best['part']}'s pose does not hold over the whole query: {why}")  # fmt: skip
+            out["seconds"] = time.perf_counter() - t0
+            return out
         log.warning(
             "full-query re-match not accepted (%s): using part %s", rec.get("reason"), best["part"]
         )
