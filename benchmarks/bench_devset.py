@@ -422,6 +422,7 @@ METHODS: dict[str, dict[str, Any]] = {
     "src_rift12": {"rift": {"rotations": 12, "max_angle_deg": 20.0}},  # v3: 30 deg steps
     # the workflow with the rift source enabled (fuse.SOURCES: runs when nothing else accepted)
     "wf_rift": {"pipeline": {"rift": {"enabled": True}}, "bands": 1},
+    "wf_rift_64m": {"pipeline": {"rift": {"enabled": True, "max_map_px": 64_000_000}}, "bands": 1},
     "wf_rift_refined": {"pipeline": {"rift": {"enabled": True}}, "bands": 1,
                         "refine": {}},  # + the workflow's refinement stage (its product)  # fmt: skip
     "wf_rift_k1": {"pipeline": {"rift": {"enabled": True, "candidates": 1}}, "bands": 1},  # mutual nearest
