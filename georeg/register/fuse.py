@@ -217,22 +217,20 @@ def fuse(
                         rec.get("reason"), best["part"], why)  # fmt: skip
             out.update(status="not_found", homography=None,
                        reason=f"part {best['part']}'s pose does not hold over the whole query: {why}")  # fmt: skip
-            out["seconds"] = time.perf_counter() - t0
-            return out
-        log.warning(
-            "full-query re-match not accepted (%s): using part %s", rec.get("reason"), best["part"]
-        )
-        out.update(
-            status="registered",
-            method="best_part",
-            pose_source=out["best_source"],
-            homography=Hb.tolist(),
-            inliers=best["inliers"],
-            matches=best.get("matches"),
-            residual_px=best.get("residual_px"),
-            log10_nfa=best.get("log10_nfa"),
-            region=best.get("region"),
-        )
+        else:
+            log.warning("full-query re-match not accepted (%s): using part %s",
+                        rec.get("reason"), best["part"])  # fmt: skip
+            out.update(
+                status="registered",
+                method="best_part",
+                pose_source=out["best_source"],
+                homography=Hb.tolist(),
+                inliers=best["inliers"],
+                matches=best.get("matches"),
+                residual_px=best.get("residual_px"),
+                log10_nfa=best.get("log10_nfa"),
+                region=best.get("region"),
+            )
     out["seconds"] = time.perf_counter() - t0
     return out
 
