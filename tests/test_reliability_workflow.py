@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from gpkg_digest import gpkg_digest
+from digests import gpkg_digest, las_digest
 from test_map_synthetic import make_las, make_ortho, scene_points
 from test_query_io import write_envi
 
@@ -69,12 +69,15 @@ def _strip(obj):
 
 def fingerprint(path: Path) -> str:
     """Hash of a product; JSON without its timing keys; a GeoPackage by its tables' rows (its
-    ``gpkg_contents.last_change`` is the time of writing, as the standard asks)."""
+    ``gpkg_contents.last_change`` is the time of writing, as the standard asks); a LAS/LAZ file
+    without its header's creation date (the day of writing)."""
     if path.suffix == ".json":
         data = _strip(json.loads(path.read_text()))
         return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()
     if path.suffix == ".gpkg":
         return gpkg_digest(path)
+    if path.suffix in (".las", ".laz"):
+        return las_digest(path)
     return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
