@@ -330,3 +330,10 @@ def test_a_query_of_few_cells_decides_nothing():
     assert r6["accepted"], r6["decision"]
     pts = np.array([[0, 0], [99, 0], [0, 99], [99, 99]], float)
     assert np.abs(matching.apply_h(r6["H"], pts) - matching.apply_h(truth, pts)).max() < 3.0
+
+
+def test_nearest_candidates_grow_with_the_map_descriptors():
+    c = rift.rift_conf({})
+    assert [rift.n_candidates(n, c) for n in (100, 38_989, 45_000, 125_559)] == [3, 3, 3, 10]
+    assert rift.n_candidates(125_559, rift.rift_conf({"desc_per_candidate": 0})) == 3
+    assert rift.n_candidates(1_000, rift.rift_conf({"candidates": 1})) == 1

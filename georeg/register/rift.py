@@ -41,6 +41,10 @@ DEFAULTS: dict[str, Any] = {
     "cells": 6,  # patch cells per side
     "rotations": 36,  # query rotations over 360 deg (MIM histograms are sensitive to rotation)
     "candidates": 3,  # nearest map descriptors per query descriptor (1: mutual nearest only)
+    "desc_per_candidate": 13_000,  # larger maps: one candidate per this many map descriptors
+    # (3 up to 39k): the true map descriptor leaves a query descriptor's 3 nearest as the map
+    # grows, while the chance of a cell's best of k, k pi e^2 / area, stays as it was when the
+    # descriptors grow with the area (0: always ``candidates``)
     "thin_px": 36.0,  # one match per query cell of this side (nearby patches overlap: dependent)
     "min_cells": 16,  # fewer matched query cells decide nothing (a 9-cell query on an unrelated
     # map reached log10 NFA -8 in the cross-spectral protocol; true accepts had >= 18)
@@ -480,7 +484,7 @@ def register(
     c = rift_conf(conf)
     mxy, md = map_feats if map_feats is not None else map_features(map_u8, c)
     mm = MapMatcher(md, c)
-    kc = int(c["candidates"])
+    kc = n_candidates(len(md), c)
     acc = {**acc_conf, "log_nfa_max": min(float(acc_conf.get("log_nfa_max", 0.0)), float(c["log_nfa_max"])),
            "min_spread_ratio": 0.0}  # a rigid pose at the known GSD is fixed by an elongated set of
     # inliers (log10 NFA down to -46 was refused as "nearly collinear"); a thin strip (minor
@@ -541,6 +545,13 @@ def register(
                             f"log10 NFA {best['log10_nfa']:.1f} not {margin:g} below the best "
                             f"pose at another rotation ({best['null_log10_nfa']:.1f})"}  # fmt: skip
     return best
+
+
+def n_candidates(n_map_desc: int, conf: dict[str, Any]) -> int:
+    """Nearest map descriptors taken per query descriptor: ``candidates``, or one per
+    ``desc_per_candidate`` map descriptors when that is more."""
+    k, per = int(conf["candidates"]), float(conf["desc_per_candidate"])
+    return max(k, round(n_map_desc / per)) if per > 0 else k
 
 
 def _null_log_nfa(per_rot: list[tuple[float, float]], angle: float | None, far_deg: float = NULL_FAR_DEG) -> float:
@@ -715,7 +726,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]],
            "null_log10_nfa": None if math.isinf(r["null_log10_nfa"]) else r["null_log10_nfa"],
            "matches": r["matches"], "angle_deg": r["angle_deg"], "map_px": int(area),
            "per_rotation": [[a, round(v, 2) if math.isfinite(v) else None] for a, v in r["per_rotation"]],
-           "map_keypoints": len(mxy),
+           "map_keypoints": len(mxy), "nearest_k": n_candidates(len(md), c),
            "reason": f"fewer than min_cells ({c['min_cells']}) matched cells at every rotation"
            if r["decision"] is None else r["decision"].get("reason", ""),
            "seconds": time.perf_counter() - t0}  # fmt: skip
