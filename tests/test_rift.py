@@ -337,3 +337,18 @@ def test_nearest_candidates_grow_with_the_map_descriptors():
     assert [rift.n_candidates(n, c) for n in (100, 38_989, 45_000, 125_559)] == [3, 3, 3, 10]
     assert rift.n_candidates(125_559, rift.rift_conf({"desc_per_candidate": 0})) == 3
     assert rift.n_candidates(1_000, rift.rift_conf({"candidates": 1})) == 1
+
+
+def test_hypotheses_come_from_the_nearest_candidates_of_a_wider_match():
+    """On a large map the pose is scored on more candidates, hypothesised on the nearest 3 only:
+    those are exactly a 3-nearest match's pairs."""
+    rng = np.random.default_rng(0)
+    qd = rng.normal(size=(50, 8)).astype(np.float32)
+    md = rng.normal(size=(400, 8)).astype(np.float32)
+    qd /= np.linalg.norm(qd, axis=1, keepdims=True)
+    md /= np.linalg.norm(md, axis=1, keepdims=True)
+    wide, three = rift.match(qd, md, 7), rift.match(qd, md, 3)
+    got = rift.nearest_of(wide, qd, md, 3)
+    assert len(got) == 150
+    assert {tuple(p) for p in got} == {tuple(p) for p in three}
+    assert rift.nearest_of(three, qd, md, 3) is three
