@@ -519,6 +519,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--half", choices=("tuning", "checking", "both"), default="both")
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--limit", type=int, default=0, help="first N queries per set (smoke runs)")
+    ap.add_argument("--only", default="",
+                    help="only the queries whose names start with one of these (comma-separated, "
+                    "e.g. wide_oi_,wide_od_: a pooled mosaic's oi and od queries); the maps stay whole")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "out" / "devset.json"))
     ap.add_argument("-v", action="store_true")
     ap.add_argument("--per-half", type=int, default=0,
@@ -564,6 +567,8 @@ def main(argv: list[str] | None = None) -> int:
     queries.sort(key=lambda q: order[q.setting])  # type: ignore[attr-defined]
     if a.half != "both":
         queries = [q for q in queries if q.half == a.half]  # type: ignore[attr-defined]
+    if a.only:
+        queries = [q for q in queries if q.name.startswith(tuple(a.only.split(",")))]
     if a.limit:
         keep: dict[str, int] = {}
         sel = []
