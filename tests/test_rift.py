@@ -333,9 +333,9 @@ def test_a_query_of_few_cells_decides_nothing():
 
 
 def test_nearest_candidates_grow_with_the_map_descriptors():
-    c = rift.rift_conf({})
+    c = rift.rift_conf({"desc_per_candidate": 13_000})
     assert [rift.n_candidates(n, c) for n in (100, 38_989, 45_000, 125_559)] == [3, 3, 3, 10]
-    assert rift.n_candidates(125_559, rift.rift_conf({"desc_per_candidate": 0})) == 3
+    assert rift.n_candidates(125_559, rift.rift_conf({})) == 3  # off by default
     assert rift.n_candidates(1_000, rift.rift_conf({"candidates": 1})) == 1
 
 

@@ -41,11 +41,12 @@ DEFAULTS: dict[str, Any] = {
     "cells": 6,  # patch cells per side
     "rotations": 36,  # query rotations over 360 deg (MIM histograms are sensitive to rotation)
     "candidates": 3,  # nearest map descriptors per query descriptor (1: mutual nearest only)
-    "desc_per_candidate": 13_000,  # larger maps: a pose is scored on one nearest map descriptor
-    # per this many (3 up to 39k; its hypotheses still come from the nearest ``candidates``):
-    # the true map descriptor leaves a query descriptor's 3 nearest as the map grows, while the
-    # chance of a cell's best of k, k pi e^2 / area, stays as it was when the descriptors grow
-    # with the area (0: always ``candidates``)
+    "desc_per_candidate": 0,  # > 0: larger maps score a pose on one nearest map descriptor
+    # per this many (its hypotheses still from the nearest ``candidates``): the true map
+    # descriptor leaves a query descriptor's 3 nearest as the map grows. 13,000 (10 candidates
+    # on a 120-reference SRIF mosaic) raised rift's optical-infrared recall there from 17/50;
+    # 24/49 to 28/50; 34/49 but accepted one chance pose (4 inliers, log10 NFA -9): off until
+    # the acceptance counts what the extra candidates add (docs/BENCHMARKS.md "Session 21")
     "thin_px": 36.0,  # one match per query cell of this side (nearby patches overlap: dependent)
     "min_cells": 16,  # fewer matched query cells decide nothing (a 9-cell query on an unrelated
     # map reached log10 NFA -8 in the cross-spectral protocol; true accepts had >= 18)
