@@ -41,12 +41,6 @@ DEFAULTS: dict[str, Any] = {
     "cells": 6,  # patch cells per side
     "rotations": 36,  # query rotations over 360 deg (MIM histograms are sensitive to rotation)
     "candidates": 3,  # nearest map descriptors per query descriptor (1: mutual nearest only)
-    "desc_per_candidate": 0,  # > 0: larger maps score a pose on one nearest map descriptor
-    # per this many (its hypotheses still from the nearest ``candidates``): the true map
-    # descriptor leaves a query descriptor's 3 nearest as the map grows. 13,000 (10 candidates
-    # on a 120-reference SRIF mosaic) raised rift's optical-infrared recall there from 17/50;
-    # 24/49 to 28/50; 34/49 but accepted one chance pose (4 inliers, log10 NFA -9): off until
-    # the acceptance counts what the extra candidates add (docs/BENCHMARKS.md "Session 21")
     "thin_px": 36.0,  # one match per query cell of this side (nearby patches overlap: dependent)
     "min_cells": 16,  # fewer matched query cells decide nothing (a 9-cell query on an unrelated
     # map reached log10 NFA -8 in the cross-spectral protocol; true accepts had >= 18)
@@ -486,8 +480,7 @@ def register(
     c = rift_conf(conf)
     mxy, md = map_feats if map_feats is not None else map_features(map_u8, c)
     mm = MapMatcher(md, c)
-    kc = n_candidates(len(md), c)  # nearest map descriptors scored per query descriptor
-    kh = min(int(c["candidates"]), kc)  # of which the nearest kh make the hypotheses
+    kc = int(c["candidates"])
     acc = {**acc_conf, "log_nfa_max": min(float(acc_conf.get("log_nfa_max", 0.0)), float(c["log_nfa_max"])),
            "min_spread_ratio": 0.0}  # a rigid pose at the known GSD is fixed by an elongated set of
     # inliers (log10 NFA down to -46 was refused as "nearly collinear"); a thin strip (minor
@@ -509,18 +502,14 @@ def register(
         if len(pairs) < 6:
             continue
         qc_all, m_all = qxy[pairs[:, 0]], mxy[pairs[:, 1]]  # canvas px (map GSD), map px
-        hyp = pairs if kh == kc else nearest_of(pairs, qd, md, kh)
         pairs, cell, sim = thin(pairs, qxy, qd, md, float(c["thin_px"]), kc)
         if len(np.unique(cell)) < c["min_cells"]:
             continue
         qc, m = qxy[pairs[:, 0]], mxy[pairs[:, 1]]
-        # hypotheses as on a small map: kh matches a cell (more would crowd the true cells out
-        # of the most similar; SRIF optical-optical 1, 35, 53 in a 40-reference mosaic)
-        hyp, _, hsim = thin(hyp, qxy, qd, md, float(c["thin_px"]), kh) if kh < kc else (pairs, cell, sim)
         top = slice(None)  # hypotheses from the most similar matches only: O(n^2) pairs x n
-        if len(hyp) > c["max_hypothesis_matches"]:
-            top = np.sort(np.argsort(-hsim)[: int(c["max_hypothesis_matches"])])
-        Hc = rigid_ransac(qxy[hyp[top, 0]], mxy[hyp[top, 1]], c["reproj_px"], c["max_angle_deg"])
+        if len(pairs) > c["max_hypothesis_matches"]:
+            top = np.sort(np.argsort(-sim)[: int(c["max_hypothesis_matches"])])
+        Hc = rigid_ransac(qc[top], m[top], c["reproj_px"], c["max_angle_deg"])
         if Hc is None:
             continue
         Ainv = np.linalg.inv(A)
@@ -552,24 +541,6 @@ def register(
                             f"log10 NFA {best['log10_nfa']:.1f} not {margin:g} below the best "
                             f"pose at another rotation ({best['null_log10_nfa']:.1f})"}  # fmt: skip
     return best
-
-
-def nearest_of(pairs: np.ndarray, qd: np.ndarray, md: np.ndarray, k: int) -> np.ndarray:
-    """The ``k`` most similar of each query descriptor's candidates (``match``'s pairs: the same
-    number of map descriptors for every query descriptor, consecutive)."""
-    per = len(pairs) // max(1, len(np.unique(pairs[:, 0])))
-    if per <= k:
-        return pairs
-    sim = np.einsum("ij,ij->i", qd[pairs[:, 0]], md[pairs[:, 1]]).reshape(-1, per)
-    keep = np.argsort(-sim, axis=1, kind="stable")[:, :k] + per * np.arange(len(sim))[:, None]
-    return pairs[np.sort(keep.ravel())]
-
-
-def n_candidates(n_map_desc: int, conf: dict[str, Any]) -> int:
-    """Nearest map descriptors taken per query descriptor: ``candidates``, or one per
-    ``desc_per_candidate`` map descriptors when that is more."""
-    k, per = int(conf["candidates"]), float(conf["desc_per_candidate"])
-    return max(k, round(n_map_desc / per)) if per > 0 else k
 
 
 def _null_log_nfa(per_rot: list[tuple[float, float]], angle: float | None, far_deg: float = NULL_FAR_DEG) -> float:
@@ -744,7 +715,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]],
            "null_log10_nfa": None if math.isinf(r["null_log10_nfa"]) else r["null_log10_nfa"],
            "matches": r["matches"], "angle_deg": r["angle_deg"], "map_px": int(area),
            "per_rotation": [[a, round(v, 2) if math.isfinite(v) else None] for a, v in r["per_rotation"]],
-           "map_keypoints": len(mxy), "nearest_k": n_candidates(len(md), c),
+           "map_keypoints": len(mxy),
            "reason": f"fewer than min_cells ({c['min_cells']}) matched cells at every rotation"
            if r["decision"] is None else r["decision"].get("reason", ""),
            "seconds": time.perf_counter() - t0}  # fmt: skip
