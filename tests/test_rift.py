@@ -330,3 +330,38 @@ def test_a_query_of_few_cells_decides_nothing():
     assert r6["accepted"], r6["decision"]
     pts = np.array([[0, 0], [99, 0], [0, 99], [99, 99]], float)
     assert np.abs(matching.apply_h(r6["H"], pts) - matching.apply_h(truth, pts)).max() < 3.0
+
+
+def test_nearest_candidates_grow_with_the_map_descriptors():
+    c = rift.rift_conf({"desc_per_candidate": 13_000})
+    assert [rift.n_candidates(n, c) for n in (100, 38_989, 45_000, 125_559)] == [3, 3, 3, 10]
+    assert rift.n_candidates(125_559, rift.rift_conf({})) == 3  # off by default
+    assert rift.n_candidates(1_000, rift.rift_conf({"candidates": 1})) == 1
+
+
+def test_hypotheses_come_from_the_nearest_candidates_of_a_wider_match():
+    """On a large map the pose is scored on more candidates, hypothesised on the nearest 3 only:
+    those are exactly a 3-nearest match's pairs."""
+    rng = np.random.default_rng(0)
+    qd = rng.normal(size=(50, 8)).astype(np.float32)
+    md = rng.normal(size=(400, 8)).astype(np.float32)
+    qd /= np.linalg.norm(qd, axis=1, keepdims=True)
+    md /= np.linalg.norm(md, axis=1, keepdims=True)
+    wide, three = rift.match(qd, md, 7), rift.match(qd, md, 3)
+    got = rift.nearest_of(wide, qd, md, 3)
+    assert len(got) == 150
+    assert {tuple(p) for p in got} == {tuple(p) for p in three}
+    assert rift.nearest_of(three, qd, md, 3) is three
+
+
+def test_density_of_candidates_crowding_a_footprint():
+    """Candidates spread like the map's keypoints: 1 (the uniform null); half of them crowded
+    into a footprint of 1 % of the map: ~50x, the factor the NFA's area is divided by."""
+    rng = np.random.default_rng(0)
+    mxy = rng.uniform(0, 1000, (20000, 2))  # the map's keypoints
+    H = np.array([[1.0, 0, 100], [0, 1, 200], [0, 0, 1]])  # a 100 x 100 px query at (100, 200)
+    spread = mxy[rng.choice(len(mxy), 10000, replace=False)]
+    assert rift.density(H, spread, mxy, 100, 100) < 1.5
+    crowd = np.r_[spread[:1000], rng.uniform([100, 200], [200, 300], (1000, 2))]  # ~0.5 / 0.01
+    assert 40 < rift.density(H, crowd, mxy, 100, 100) < 60
+    assert rift.density(H, np.zeros((0, 2)), mxy, 100, 100) == 1.0  # nothing unexplained

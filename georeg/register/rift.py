@@ -41,6 +41,13 @@ DEFAULTS: dict[str, Any] = {
     "cells": 6,  # patch cells per side
     "rotations": 36,  # query rotations over 360 deg (MIM histograms are sensitive to rotation)
     "candidates": 3,  # nearest map descriptors per query descriptor (1: mutual nearest only)
+    "desc_per_candidate": 13_000,  # > 0: larger maps score a pose on one nearest map descriptor
+    # per this many (its hypotheses still from the nearest ``candidates``): the true map
+    # descriptor leaves a query descriptor's 3 nearest as the map grows. 13,000 (10 candidates
+    # on a 120-reference SRIF mosaic) raised rift's optical-infrared recall there from 17/50;
+    # 24/49 to 28/50; 34/49 but accepted one chance pose (4 inliers, log10 NFA -9): off until
+    # the acceptance counts what the extra candidates add (docs/BENCHMARKS.md "Session 21")
+    "local_density": True,  # the NFA's area shrunk by the candidates' density in the footprint
     "thin_px": 36.0,  # one match per query cell of this side (nearby patches overlap: dependent)
     "min_cells": 16,  # fewer matched query cells decide nothing (a 9-cell query on an unrelated
     # map reached log10 NFA -8 in the cross-spectral protocol; true accepts had >= 18)
@@ -480,7 +487,8 @@ def register(
     c = rift_conf(conf)
     mxy, md = map_feats if map_feats is not None else map_features(map_u8, c)
     mm = MapMatcher(md, c)
-    kc = int(c["candidates"])
+    kc = n_candidates(len(md), c)  # nearest map descriptors scored per query descriptor
+    kh = min(int(c["candidates"]), kc)  # of which the nearest kh make the hypotheses
     acc = {**acc_conf, "log_nfa_max": min(float(acc_conf.get("log_nfa_max", 0.0)), float(c["log_nfa_max"])),
            "min_spread_ratio": 0.0}  # a rigid pose at the known GSD is fixed by an elongated set of
     # inliers (log10 NFA down to -46 was refused as "nearly collinear"); a thin strip (minor
@@ -495,32 +503,40 @@ def register(
     h, w = query_u8.shape
     to_m = np.diag([map_gsd_m, -map_gsd_m, 1.0])  # map px -> north-up map units (handedness)
     best: dict[str, Any] = {"accepted": False, "H": None, "log10_nfa": math.inf, "inliers": 0,
-                            "matches": 0, "tests": n_rot, "angle_deg": None, "decision": None}  # fmt: skip
+                            "matches": 0, "tests": n_rot, "angle_deg": None, "decision": None,
+                            "density": 1.0, "log10_nfa_uniform": math.inf}  # fmt: skip
     per_rot: list[tuple[float, float]] = []  # (angle, log10 NFA) of each rotation's pose
     for angle, qxy, qd, A in rotated_features(query_u8, scale, c):
         pairs = match(qd, mm, kc)
         if len(pairs) < 6:
             continue
         qc_all, m_all = qxy[pairs[:, 0]], mxy[pairs[:, 1]]  # canvas px (map GSD), map px
+        hyp = pairs if kh == kc else nearest_of(pairs, qd, md, kh)
         pairs, cell, sim = thin(pairs, qxy, qd, md, float(c["thin_px"]), kc)
         if len(np.unique(cell)) < c["min_cells"]:
             continue
         qc, m = qxy[pairs[:, 0]], mxy[pairs[:, 1]]
+        # hypotheses as on a small map: kh matches a cell (more would crowd the true cells out
+        # of the most similar; SRIF optical-optical 1, 35, 53 in a 40-reference mosaic)
+        hyp, _, hsim = thin(hyp, qxy, qd, md, float(c["thin_px"]), kh) if kh < kc else (pairs, cell, sim)
         top = slice(None)  # hypotheses from the most similar matches only: O(n^2) pairs x n
-        if len(pairs) > c["max_hypothesis_matches"]:
-            top = np.sort(np.argsort(-sim)[: int(c["max_hypothesis_matches"])])
-        Hc = rigid_ransac(qc[top], m[top], c["reproj_px"], c["max_angle_deg"])
+        if len(hyp) > c["max_hypothesis_matches"]:
+            top = np.sort(np.argsort(-hsim)[: int(c["max_hypothesis_matches"])])
+        Hc = rigid_ransac(qxy[hyp[top, 0]], mxy[hyp[top, 1]], c["reproj_px"], c["max_angle_deg"])
         if Hc is None:
             continue
         Ainv = np.linalg.inv(A)
         q = (np.c_[qc, np.ones(len(qc))] @ Ainv.T)[:, :2]  # query px
         H = Hc @ A
-        res, at = cell_min(np.linalg.norm((np.c_[q, np.ones(len(q))] @ H.T)[:, :2] - m, axis=1), cell)
+        r_pairs = np.linalg.norm((np.c_[q, np.ones(len(q))] @ H.T)[:, :2] - m, axis=1)
+        res, at = cell_min(r_pairs, cell)
         q = q[at]
         inl = res <= c["reproj_px"]
         capped = np.where(res <= c["nfa_cap_px"], res, 1e9)  # a miss: p = 1, n unchanged
-        # a cell's best of k candidates lands within e of chance with probability k pi e^2 / area
-        dec = acceptance.decide(to_m @ H, capped, int(inl.sum()), area / kc, w, h,
+        # a cell's best of k candidates lands within e of chance with probability k pi e^2 / area,
+        # area shrunk by how densely the candidates the pose does not explain crowd its footprint
+        dens = density(H, m[r_pairs > c["nfa_cap_px"]], mxy, w, h) if c["local_density"] else 1.0
+        dec = acceptance.decide(to_m @ H, capped, int(inl.sum()), area / kc / dens, w, h,
                                 gsd_m if gsd_m is not None else scale * map_gsd_m, acc,
                                 n_candidates=n_rot + int(tests_before),
                                 inlier_q_xy=q[inl], strip_log_nfa=strong)  # fmt: skip
@@ -529,8 +545,9 @@ def register(
         key = (bool(dec["accepted"]), -lnfa)
         if best["decision"] is None or key > (bool(best["accepted"]), -best["log10_nfa"]):
             H = refit(Hc, qc_all, m_all, c["reproj_px"]) @ A
-            best.update(accepted=bool(dec["accepted"]), H=H, log10_nfa=lnfa,
-                        inliers=int(inl.sum()), matches=len(res), angle_deg=angle, decision=dec)  # fmt: skip
+            best.update(accepted=bool(dec["accepted"]), H=H, log10_nfa=lnfa, density=dens,
+                        inliers=int(inl.sum()), matches=len(res), angle_deg=angle, decision=dec,
+                        log10_nfa_uniform=acceptance.log10_nfa(capped, area / kc, n_rot + int(tests_before))[0])  # fmt: skip
     best["lowest_log10_nfa"] = best["log10_nfa"]
     best["null_log10_nfa"] = _null_log_nfa(per_rot, best["angle_deg"])
     best["per_rotation"] = per_rot
@@ -541,6 +558,43 @@ def register(
                             f"log10 NFA {best['log10_nfa']:.1f} not {margin:g} below the best "
                             f"pose at another rotation ({best['null_log10_nfa']:.1f})"}  # fmt: skip
     return best
+
+
+def density(H: np.ndarray, m_miss: np.ndarray, mxy: np.ndarray, width: int, height: int) -> float:
+    """How many times more densely than the map's keypoints ``mxy`` the candidate matches a pose
+    does not explain (``m_miss``, map px) land in its footprint (``H``: query px -> map px; the
+    query's ``width`` x ``height``): (observed + 1) / (expected + 1), at least 1. The NFA's null spreads chance candidates over the
+    whole map; a query's nearest descriptors crowd the map's regions that look like it (SRIF
+    optical-depth queries on a mosaic of 120 references: 4-55x in the footprints of their poses,
+    true or not), where a chance pose finds its near residuals (optical-depth 25: 10 cells within
+    5.4 px, log10 NFA -9 by the uniform null, 32x)."""
+    Hi = np.linalg.inv(H)
+
+    def inside(p: np.ndarray) -> int:
+        x = np.c_[p, np.ones(len(p))] @ Hi.T
+        x = x[:, :2] / x[:, 2:3]
+        return int(((x[:, 0] >= 0) & (x[:, 0] < width) & (x[:, 1] >= 0) & (x[:, 1] < height)).sum())
+
+    expected = len(m_miss) * inside(mxy) / max(len(mxy), 1)  # where the map's keypoints are
+    return max(1.0, (inside(m_miss) + 1) / (expected + 1))
+
+
+def nearest_of(pairs: np.ndarray, qd: np.ndarray, md: np.ndarray, k: int) -> np.ndarray:
+    """The ``k`` most similar of each query descriptor's candidates (``match``'s pairs: the same
+    number of map descriptors for every query descriptor, consecutive)."""
+    per = len(pairs) // max(1, len(np.unique(pairs[:, 0])))
+    if per <= k:
+        return pairs
+    sim = np.einsum("ij,ij->i", qd[pairs[:, 0]], md[pairs[:, 1]]).reshape(-1, per)
+    keep = np.argsort(-sim, axis=1, kind="stable")[:, :k] + per * np.arange(len(sim))[:, None]
+    return pairs[np.sort(keep.ravel())]
+
+
+def n_candidates(n_map_desc: int, conf: dict[str, Any]) -> int:
+    """Nearest map descriptors taken per query descriptor: ``candidates``, or one per
+    ``desc_per_candidate`` map descriptors when that is more."""
+    k, per = int(conf["candidates"]), float(conf["desc_per_candidate"])
+    return max(k, round(n_map_desc / per)) if per > 0 else k
 
 
 def _null_log_nfa(per_rot: list[tuple[float, float]], angle: float | None, far_deg: float = NULL_FAR_DEG) -> float:
@@ -715,7 +769,8 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]],
            "null_log10_nfa": None if math.isinf(r["null_log10_nfa"]) else r["null_log10_nfa"],
            "matches": r["matches"], "angle_deg": r["angle_deg"], "map_px": int(area),
            "per_rotation": [[a, round(v, 2) if math.isfinite(v) else None] for a, v in r["per_rotation"]],
-           "map_keypoints": len(mxy),
+           "map_keypoints": len(mxy), "nearest_k": n_candidates(len(md), c),
+           "density": round(float(r["density"]), 2), "log10_nfa_uniform": None if math.isinf(r["log10_nfa_uniform"]) else r["log10_nfa_uniform"],
            "reason": f"fewer than min_cells ({c['min_cells']}) matched cells at every rotation"
            if r["decision"] is None else r["decision"].get("reason", ""),
            "seconds": time.perf_counter() - t0}  # fmt: skip
