@@ -464,7 +464,7 @@ def run_rift(q: bx.Query, sc: bx.Scene, spec: dict[str, Any], seed: int) -> dict
             "null_log10_nfa": r["null_log10_nfa"], "polish": pol,
             "per_rotation": r["per_rotation"], "seconds": time.perf_counter() - t0,
             "nfa_k": (r["decision"] or {}).get("nfa_k"), "nfa_eps_px": (r["decision"] or {}).get("nfa_eps_px"),
-            "density": r.get("density"), "log10_nfa_uniform": r.get("log10_nfa_uniform"),
+            "confirm": r.get("confirm"),
             "reason": (r["decision"] or {}).get("reason")}  # fmt: skip
 
 
@@ -624,7 +624,7 @@ def main(argv: list[str] | None = None) -> int:
                    "places": len(getattr(q, "alts", []) or []),
                    "truth_audit": getattr(q, "truth_audit", None),
                    **_rift_fields(res), "ortho_gain": res.get("ortho_gain"),
-                   **{k: res.get(k, (res.get("rift") or {}).get(k)) for k in ("nfa_k", "nfa_eps_px", "density", "log10_nfa_uniform", "reason")},
+                   **{k: res.get(k, (res.get("rift") or {}).get(k)) for k in ("nfa_k", "nfa_eps_px", "confirm", "reason")},
                    "H": None if res.get("H") is None else np.asarray(res["H"]).tolist()}  # fmt: skip
             rows[name].append(rec)
             append_record(partial, name, rec)

@@ -265,8 +265,12 @@ def test_pucallpa_blanked_map_rejected_by_the_measured_null(shared_data):
         pytest.skip("Landsat Pucallpa absent")
     q, sc = _pucallpa("puc_2005_on_1990_1_1.6um_blanked")
     u8 = next(iter(q.bands.values()))
-    off = rift.register(u8, sc.map_gray, q.gsd / sc.map_gsd, _acc(), {"null_margin": 0})
+    off = rift.register(u8, sc.map_gray, q.gsd / sc.map_gsd, _acc(), {"null_margin": 0, "confirm_log_p_max": 0})
     assert off["accepted"] and off["log10_nfa"] < -2.0
+    # the guided re-match refuses it too: 2 of 19 cells find their place near the pose
+    alone = rift.register(u8, sc.map_gray, q.gsd / sc.map_gsd, _acc(), {"null_margin": 0})
+    assert not alone["accepted"] and "not confirmed" in alone["decision"]["reason"]
+    assert alone["confirm"]["hits"] <= 2, alone["confirm"]
     on = rift.register(u8, sc.map_gray, q.gsd / sc.map_gsd, _acc(), {})
     assert not on["accepted"] and "another rotation" in on["decision"]["reason"]
     assert on["log10_nfa"] > on["null_log10_nfa"] - rift.DEFAULTS["null_margin"]
@@ -335,7 +339,7 @@ def test_a_query_of_few_cells_decides_nothing():
 def test_nearest_candidates_grow_with_the_map_descriptors():
     c = rift.rift_conf({"desc_per_candidate": 13_000})
     assert [rift.n_candidates(n, c) for n in (100, 38_989, 45_000, 125_559)] == [3, 3, 3, 10]
-    assert rift.n_candidates(125_559, rift.rift_conf({})) == 3  # off by default
+    assert rift.n_candidates(125_559, rift.rift_conf({"desc_per_candidate": 0})) == 3  # off
     assert rift.n_candidates(1_000, rift.rift_conf({"candidates": 1})) == 1
 
 
@@ -354,14 +358,17 @@ def test_hypotheses_come_from_the_nearest_candidates_of_a_wider_match():
     assert rift.nearest_of(three, qd, md, 3) is three
 
 
-def test_density_of_candidates_crowding_a_footprint():
-    """Candidates spread like the map's keypoints: 1 (the uniform null); half of them crowded
-    into a footprint of 1 % of the map: ~50x, the factor the NFA's area is divided by."""
-    rng = np.random.default_rng(0)
-    mxy = rng.uniform(0, 1000, (20000, 2))  # the map's keypoints
-    H = np.array([[1.0, 0, 100], [0, 1, 200], [0, 0, 1]])  # a 100 x 100 px query at (100, 200)
-    spread = mxy[rng.choice(len(mxy), 10000, replace=False)]
-    assert rift.density(H, spread, mxy, 100, 100) < 1.5
-    crowd = np.r_[spread[:1000], rng.uniform([100, 200], [200, 300], (1000, 2))]  # ~0.5 / 0.01
-    assert 40 < rift.density(H, crowd, mxy, 100, 100) < 60
-    assert rift.density(H, np.zeros((0, 2)), mxy, 100, 100) == 1.0  # nothing unexplained
+def test_guided_rematch_confirms_the_true_pose_not_a_moved_one():
+    """The remapped rotated crop: at its true pose most cells' most similar map keypoint within
+    the radius lies on its predicted place; moved by 60 px, 3 of 28 (p = (3 / 32)^2 each)."""
+    m = _scene(1)
+    q, truth = _query(m, (170.0, 150.0), 37.0, 160)
+    c = rift.rift_conf({})
+    r = rift.register(q, m, 1.0, _acc(), c)
+    assert r["accepted"] and r["confirm"]["log10_p"] < c["confirm_log_p_max"], r["confirm"]
+    mxy, md = rift.map_features(m, c)
+    qxy, qd, A = next((x, d, a) for ang, x, d, a in rift.rotated_features(q, 1.0, c) if ang == r["angle_deg"])
+    good = rift.confirm(truth, qxy, qd, A, mxy, md, c)
+    moved = rift.confirm(np.array([[1, 0, 60], [0, 1, 0], [0, 0, 1.0]]) @ truth, qxy, qd, A, mxy, md, c)
+    assert good["hits"] >= 0.5 * good["cells"], good
+    assert moved["hits"] <= 0.15 * moved["cells"] and moved["log10_p"] > c["confirm_log_p_max"], moved

@@ -47,13 +47,16 @@ DEFAULTS: dict[str, Any] = {
     # on a 120-reference SRIF mosaic) raised rift's optical-infrared recall there from 17/50;
     # 24/49 to 28/50; 34/49 but accepted one chance pose (4 inliers, log10 NFA -9): off until
     # the acceptance counts what the extra candidates add (docs/BENCHMARKS.md "Session 21")
-    "local_density": True,  # the NFA's area shrunk by the candidates' density in the footprint
     "thin_px": 36.0,  # one match per query cell of this side (nearby patches overlap: dependent)
     "min_cells": 16,  # fewer matched query cells decide nothing (a 9-cell query on an unrelated
     # map reached log10 NFA -8 in the cross-spectral protocol; true accepts had >= 18)
     "max_angle_deg": 7.0,  # rigid: largest rotation left after the query's rotation step
     "reproj_px": 3.0,  # RANSAC threshold (map px)
     "max_hypothesis_matches": 200,  # a large query's hypotheses: its most similar thinned matches
+    "confirm_radius_px": 32.0,  # an accepted pose confirmed by a guided re-match: each query
+    # cell's most similar map keypoint within this radius of its predicted place (``confirm``)
+    "confirm_log_p_max": -2.0,  # ... lands within reproj_px in more cells than chance would put
+    # there (binomial, p = (reproj_px / radius)^2) with log10 probability below this; 0 = off
     "nfa_cap_px": 6.0,  # residuals above this count as misses in the NFA (a pose certified to it)
     "log_nfa_max": -2.0,  # accept below this log10 NFA (a source run on every query nothing else
     # accepted: 0.01 expected false alarms a query, not the acceptance's 1)
@@ -503,9 +506,9 @@ def register(
     h, w = query_u8.shape
     to_m = np.diag([map_gsd_m, -map_gsd_m, 1.0])  # map px -> north-up map units (handedness)
     best: dict[str, Any] = {"accepted": False, "H": None, "log10_nfa": math.inf, "inliers": 0,
-                            "matches": 0, "tests": n_rot, "angle_deg": None, "decision": None,
-                            "density": 1.0, "log10_nfa_uniform": math.inf}  # fmt: skip
+                            "matches": 0, "tests": n_rot, "angle_deg": None, "decision": None}  # fmt: skip
     per_rot: list[tuple[float, float]] = []  # (angle, log10 NFA) of each rotation's pose
+    seen: tuple[np.ndarray, ...] = ()  # the best rotation's query features and candidates
     for angle, qxy, qd, A in rotated_features(query_u8, scale, c):
         pairs = match(qd, mm, kc)
         if len(pairs) < 6:
@@ -528,15 +531,12 @@ def register(
         Ainv = np.linalg.inv(A)
         q = (np.c_[qc, np.ones(len(qc))] @ Ainv.T)[:, :2]  # query px
         H = Hc @ A
-        r_pairs = np.linalg.norm((np.c_[q, np.ones(len(q))] @ H.T)[:, :2] - m, axis=1)
-        res, at = cell_min(r_pairs, cell)
+        res, at = cell_min(np.linalg.norm((np.c_[q, np.ones(len(q))] @ H.T)[:, :2] - m, axis=1), cell)
         q = q[at]
         inl = res <= c["reproj_px"]
         capped = np.where(res <= c["nfa_cap_px"], res, 1e9)  # a miss: p = 1, n unchanged
-        # a cell's best of k candidates lands within e of chance with probability k pi e^2 / area,
-        # area shrunk by how densely the candidates the pose does not explain crowd its footprint
-        dens = density(H, m[r_pairs > c["nfa_cap_px"]], mxy, w, h) if c["local_density"] else 1.0
-        dec = acceptance.decide(to_m @ H, capped, int(inl.sum()), area / kc / dens, w, h,
+        # a cell's best of k candidates lands within e of chance with probability k pi e^2 / area
+        dec = acceptance.decide(to_m @ H, capped, int(inl.sum()), area / kc, w, h,
                                 gsd_m if gsd_m is not None else scale * map_gsd_m, acc,
                                 n_candidates=n_rot + int(tests_before),
                                 inlier_q_xy=q[inl], strip_log_nfa=strong)  # fmt: skip
@@ -545,9 +545,9 @@ def register(
         key = (bool(dec["accepted"]), -lnfa)
         if best["decision"] is None or key > (bool(best["accepted"]), -best["log10_nfa"]):
             H = refit(Hc, qc_all, m_all, c["reproj_px"]) @ A
-            best.update(accepted=bool(dec["accepted"]), H=H, log10_nfa=lnfa, density=dens,
-                        inliers=int(inl.sum()), matches=len(res), angle_deg=angle, decision=dec,
-                        log10_nfa_uniform=acceptance.log10_nfa(capped, area / kc, n_rot + int(tests_before))[0])  # fmt: skip
+            best.update(accepted=bool(dec["accepted"]), H=H, log10_nfa=lnfa,
+                        inliers=int(inl.sum()), matches=len(res), angle_deg=angle, decision=dec)  # fmt: skip
+            seen = (qxy, qd, A)
     best["lowest_log10_nfa"] = best["log10_nfa"]
     best["null_log10_nfa"] = _null_log_nfa(per_rot, best["angle_deg"])
     best["per_rotation"] = per_rot
@@ -557,26 +557,57 @@ def register(
         best["decision"] = {**best["decision"], "accepted": False, "reason":
                             f"log10 NFA {best['log10_nfa']:.1f} not {margin:g} below the best "
                             f"pose at another rotation ({best['null_log10_nfa']:.1f})"}  # fmt: skip
+    if best["accepted"] and float(c["confirm_log_p_max"]) < 0:
+        best["confirm"] = conf_ = confirm(best["H"], *seen, mxy, md, c)
+        if not conf_["log10_p"] < float(c["confirm_log_p_max"]):
+            best["accepted"] = False
+            best["decision"] = {**best["decision"], "accepted": False, "reason":
+                                f"not confirmed: {conf_['hits']} of {conf_['cells']} cells found "
+                                f"their place near it (log10 p {conf_['log10_p']:.1f} >= "
+                                f"{c['confirm_log_p_max']:g})"}  # fmt: skip
     return best
 
 
-def density(H: np.ndarray, m_miss: np.ndarray, mxy: np.ndarray, width: int, height: int) -> float:
-    """How many times more densely than the map's keypoints ``mxy`` the candidate matches a pose
-    does not explain (``m_miss``, map px) land in its footprint (``H``: query px -> map px; the
-    query's ``width`` x ``height``): (observed + 1) / (expected + 1), at least 1. The NFA's null spreads chance candidates over the
-    whole map; a query's nearest descriptors crowd the map's regions that look like it (SRIF
-    optical-depth queries on a mosaic of 120 references: 4-55x in the footprints of their poses,
-    true or not), where a chance pose finds its near residuals (optical-depth 25: 10 cells within
-    5.4 px, log10 NFA -9 by the uniform null, 32x)."""
-    Hi = np.linalg.inv(H)
+def confirm(H: np.ndarray, qxy: np.ndarray, qd: np.ndarray, A: np.ndarray, mxy: np.ndarray,
+            md: np.ndarray, c: dict[str, Any], chunk: int = 1024) -> dict[str, Any]:
+    """A pose (``H``: query px -> map px) checked by a guided re-match, without the map-wide
+    search: in each query cell (``thin_px``), the query keypoint (``qxy`` canvas px, ``A``: query
+    px -> canvas px) whose most similar map keypoint within ``confirm_radius_px`` of its
+    predicted place is the most similar; a hit when that map keypoint lies within ``reproj_px``.
+    At a wrong pose it is anywhere in the disc: a hit with p = (reproj_px / radius)^2, whatever
+    made the pose. Returns ``cells``, ``hits`` and ``log10_p``: the binomial tail of hits - 2
+    among cells - 2 (the two cells a rigid pose can be fit to; 0 up to 2 hits). On a mosaic of
+    120 SRIF references, chance poses down to log10 NFA -9 hit 1-3 of 55-85 cells (24 px);
+    true ones 9-41 of 52-107, where their nearest map descriptors over the whole map missed."""
+    from scipy.spatial import cKDTree
+    from scipy.stats import binom
 
-    def inside(p: np.ndarray) -> int:
-        x = np.c_[p, np.ones(len(p))] @ Hi.T
-        x = x[:, :2] / x[:, 2:3]
-        return int(((x[:, 0] >= 0) & (x[:, 0] < width) & (x[:, 1] >= 0) & (x[:, 1] < height)).sum())
-
-    expected = len(m_miss) * inside(mxy) / max(len(mxy), 1)  # where the map's keypoints are
-    return max(1.0, (inside(m_miss) + 1) / (expected + 1))
+    e, rad = float(c["reproj_px"]), float(c["confirm_radius_px"])
+    p = np.c_[qxy, np.ones(len(qxy))] @ (H @ np.linalg.inv(A)).T
+    pred = p[:, :2] / p[:, 2:3]
+    cell = np.floor(qxy / max(float(c["thin_px"]), 1e-9)).astype(np.int64)
+    key = cell[:, 0] * 1_000_003 + cell[:, 1]
+    tree = cKDTree(mxy)
+    k = int(min(len(mxy), 64))
+    sim = np.full(len(qxy), -np.inf)
+    dist = np.full(len(qxy), np.inf)
+    for s0 in range(0, len(qxy), chunk):
+        d, nn = tree.query(pred[s0 : s0 + chunk], k=k, distance_upper_bound=rad)
+        d, nn = d.reshape(len(d), -1), nn.reshape(len(nn), -1)
+        ok = np.isfinite(d)
+        s = np.einsum("ijk,ik->ij", md[np.where(ok, nn, 0)], qd[s0 : s0 + chunk])
+        s = np.where(ok, s, -np.inf)
+        b = np.argmax(s, axis=1)
+        r = np.arange(len(b))
+        sim[s0 : s0 + chunk], dist[s0 : s0 + chunk] = s[r, b], d[r, b]
+    has = np.isfinite(sim)
+    fk, fs, fd = key[has], sim[has], dist[has]
+    order = np.lexsort((-fs, fk))  # per cell: its keypoint with the most similar nearby match
+    first = order[np.r_[True, fk[order][1:] != fk[order][:-1]]] if len(order) else order
+    n, hits = len(first), int((fd[first] <= e).sum())
+    pe = min(1.0, (e / rad) ** 2)
+    lp = float(binom.logsf(hits - 3, n - 2, pe) / math.log(10)) if hits > 2 else 0.0
+    return {"cells": n, "hits": hits, "log10_p": lp}
 
 
 def nearest_of(pairs: np.ndarray, qd: np.ndarray, md: np.ndarray, k: int) -> np.ndarray:
@@ -769,8 +800,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]],
            "null_log10_nfa": None if math.isinf(r["null_log10_nfa"]) else r["null_log10_nfa"],
            "matches": r["matches"], "angle_deg": r["angle_deg"], "map_px": int(area),
            "per_rotation": [[a, round(v, 2) if math.isfinite(v) else None] for a, v in r["per_rotation"]],
-           "map_keypoints": len(mxy), "nearest_k": n_candidates(len(md), c),
-           "density": round(float(r["density"]), 2), "log10_nfa_uniform": None if math.isinf(r["log10_nfa_uniform"]) else r["log10_nfa_uniform"],
+           "map_keypoints": len(mxy), "nearest_k": n_candidates(len(md), c), "confirm": r.get("confirm"),
            "reason": f"fewer than min_cells ({c['min_cells']}) matched cells at every rotation"
            if r["decision"] is None else r["decision"].get("reason", ""),
            "seconds": time.perf_counter() - t0}  # fmt: skip
