@@ -41,12 +41,10 @@ DEFAULTS: dict[str, Any] = {
     "cells": 6,  # patch cells per side
     "rotations": 36,  # query rotations over 360 deg (MIM histograms are sensitive to rotation)
     "candidates": 3,  # nearest map descriptors per query descriptor (1: mutual nearest only)
-    "desc_per_candidate": 13_000,  # > 0: larger maps score a pose on one nearest map descriptor
-    # per this many (its hypotheses still from the nearest ``candidates``): the true map
-    # descriptor leaves a query descriptor's 3 nearest as the map grows. 13,000 (10 candidates
-    # on a 120-reference SRIF mosaic) raised rift's optical-infrared recall there from 17/50;
-    # 24/49 to 28/50; 34/49 but accepted one chance pose (4 inliers, log10 NFA -9): off until
-    # the acceptance counts what the extra candidates add (docs/BENCHMARKS.md "Session 21")
+    "desc_per_candidate": 13_000,  # larger maps score a pose on one nearest map descriptor per
+    # this many (its hypotheses still from the nearest ``candidates``): the true map descriptor
+    # leaves a query descriptor's 3 nearest as the map grows (10 on a 120-reference SRIF mosaic:
+    # optical-infrared 28/50; 32/49 instead of 17/50; 24/49); 0 = always ``candidates``
     "thin_px": 36.0,  # one match per query cell of this side (nearby patches overlap: dependent)
     "min_cells": 16,  # fewer matched query cells decide nothing (a 9-cell query on an unrelated
     # map reached log10 NFA -8 in the cross-spectral protocol; true accepts had >= 18)
