@@ -506,7 +506,7 @@ def register(
     best: dict[str, Any] = {"accepted": False, "H": None, "log10_nfa": math.inf, "inliers": 0,
                             "matches": 0, "tests": n_rot, "angle_deg": None, "decision": None}  # fmt: skip
     per_rot: list[tuple[float, float]] = []  # (angle, log10 NFA) of each rotation's pose
-    seen: tuple[np.ndarray, ...] = ()  # the best rotation's query features and candidates
+    seen: tuple[np.ndarray, ...] = ()  # the best rotation's query keypoints, descriptors, A
     for angle, qxy, qd, A in rotated_features(query_u8, scale, c):
         pairs = match(qd, mm, kc)
         if len(pairs) < 6:
@@ -575,7 +575,7 @@ def confirm(H: np.ndarray, qxy: np.ndarray, qd: np.ndarray, A: np.ndarray, mxy: 
     At a wrong pose it is anywhere in the disc: a hit with p = (reproj_px / radius)^2, whatever
     made the pose. Returns ``cells``, ``hits`` and ``log10_p``: the binomial tail of hits - 2
     among cells - 2 (the two cells a rigid pose can be fit to; 0 up to 2 hits). On a mosaic of
-    120 SRIF references, chance poses down to log10 NFA -9 hit 1-3 of 55-85 cells (24 px);
+    120 SRIF references (probed at 24 px), chance poses down to log10 NFA -9 hit 1-3 of 55-85 cells;
     true ones 9-41 of 52-107, where their nearest map descriptors over the whole map missed."""
     from scipy.spatial import cKDTree
     from scipy.stats import binom
