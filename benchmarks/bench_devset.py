@@ -463,16 +463,16 @@ def run_rift(q: bx.Query, sc: bx.Scene, spec: dict[str, Any], seed: int) -> dict
             "angle_deg": r["angle_deg"], "map_cpu_seconds": map_s,
             "null_log10_nfa": r["null_log10_nfa"], "polish": pol,
             "per_rotation": r["per_rotation"], "seconds": time.perf_counter() - t0,
-            "nfa_k": (r["decision"] or {}).get("nfa_k"), "nfa_eps_px": (r["decision"] or {}).get("nfa_eps_px"),
             "confirm": r.get("confirm"),
-            "reason": (r["decision"] or {}).get("reason")}  # fmt: skip
+            **{k: (r["decision"] or {}).get(k) for k in ("nfa_k", "nfa_eps_px", "reason")}}  # fmt: skip
 
 
 def _rift_fields(res: dict[str, Any]) -> dict[str, Any]:
-    """The rift source's null, polish and per-rotation NFAs (source alone, or the workflow's
-    registration record)."""
+    """The rift source's null, polish, per-rotation NFAs, NFA's k and e_k, confirmation and
+    reason (source alone, or the workflow's registration record)."""
     r = res if "per_rotation" in res else (res.get("rift") or {})
-    return {k: r.get(k) for k in ("null_log10_nfa", "polish", "per_rotation")}
+    keys = ("null_log10_nfa", "polish", "per_rotation", "nfa_k", "nfa_eps_px", "confirm", "reason")
+    return {k: r.get(k) for k in keys}
 
 
 def run(q: bx.Query, sc: bx.Scene, name: str, seed: int) -> dict[str, Any]:
@@ -624,7 +624,6 @@ def main(argv: list[str] | None = None) -> int:
                    "places": len(getattr(q, "alts", []) or []),
                    "truth_audit": getattr(q, "truth_audit", None),
                    **_rift_fields(res), "ortho_gain": res.get("ortho_gain"),
-                   **{k: res.get(k, (res.get("rift") or {}).get(k)) for k in ("nfa_k", "nfa_eps_px", "confirm", "reason")},
                    "H": None if res.get("H") is None else np.asarray(res["H"]).tolist()}  # fmt: skip
             rows[name].append(rec)
             append_record(partial, name, rec)

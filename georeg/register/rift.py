@@ -338,8 +338,7 @@ def thin(pairs: np.ndarray, qxy: np.ndarray, qd: np.ndarray, md: np.ndarray,
     if len(pairs) == 0:
         return pairs, np.zeros(0, np.int64), np.zeros(0, np.float32)
     sim = np.einsum("ij,ij->i", qd[pairs[:, 0]], md[pairs[:, 1]])
-    cell = np.floor(qxy[pairs[:, 0]] / max(cell_px, 1e-9)).astype(np.int64)
-    key = cell[:, 0] * 1_000_003 + cell[:, 1]
+    key = cell_key(qxy[pairs[:, 0]], cell_px)
     order = np.lexsort((-sim, key))
     ks = key[order]
     rank = np.arange(len(order)) - np.searchsorted(ks, ks)
@@ -347,8 +346,16 @@ def thin(pairs: np.ndarray, qxy: np.ndarray, qd: np.ndarray, md: np.ndarray,
     return pairs[keep], key[keep], sim[keep]
 
 
+def cell_key(xy: np.ndarray, cell_px: float) -> np.ndarray:
+    """One integer per query cell of ``cell_px`` (canvas px) holding each point."""
+    cell = np.floor(xy / max(cell_px, 1e-9)).astype(np.int64)
+    return cell[:, 0] * 1_000_003 + cell[:, 1]
+
+
 def cell_min(res: np.ndarray, cell: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per cell: the smallest residual of its candidates and that candidate's index."""
+    if len(res) == 0:
+        return res, np.zeros(0, np.int64)
     order = np.lexsort((res, cell))
     first = order[np.r_[True, cell[order][1:] != cell[order][:-1]]]
     return res[first], first
@@ -583,8 +590,7 @@ def confirm(H: np.ndarray, qxy: np.ndarray, qd: np.ndarray, A: np.ndarray, mxy: 
     e, rad = float(c["reproj_px"]), float(c["confirm_radius_px"])
     p = np.c_[qxy, np.ones(len(qxy))] @ (H @ np.linalg.inv(A)).T
     pred = p[:, :2] / p[:, 2:3]
-    cell = np.floor(qxy / max(float(c["thin_px"]), 1e-9)).astype(np.int64)
-    key = cell[:, 0] * 1_000_003 + cell[:, 1]
+    key = cell_key(qxy, float(c["thin_px"]))
     tree = cKDTree(mxy)
     k = int(min(len(mxy), 64))
     sim = np.full(len(qxy), -np.inf)
@@ -599,10 +605,8 @@ def confirm(H: np.ndarray, qxy: np.ndarray, qd: np.ndarray, A: np.ndarray, mxy: 
         r = np.arange(len(b))
         sim[s0 : s0 + chunk], dist[s0 : s0 + chunk] = s[r, b], d[r, b]
     has = np.isfinite(sim)
-    fk, fs, fd = key[has], sim[has], dist[has]
-    order = np.lexsort((-fs, fk))  # per cell: its keypoint with the most similar nearby match
-    first = order[np.r_[True, fk[order][1:] != fk[order][:-1]]] if len(order) else order
-    n, hits = len(first), int((fd[first] <= e).sum())
+    _, first = cell_min(-sim[has], key[has])  # per cell: its most similar nearby match
+    n, hits = len(first), int((dist[has][first] <= e).sum())
     pe = min(1.0, (e / rad) ** 2)
     lp = float(binom.logsf(hits - 3, n - 2, pe) / math.log(10)) if hits > 2 else 0.0
     return {"cells": n, "hits": hits, "log10_p": lp}
