@@ -463,15 +463,15 @@ def run_rift(q: bx.Query, sc: bx.Scene, spec: dict[str, Any], seed: int) -> dict
             "angle_deg": r["angle_deg"], "map_cpu_seconds": map_s,
             "null_log10_nfa": r["null_log10_nfa"], "polish": pol,
             "per_rotation": r["per_rotation"], "seconds": time.perf_counter() - t0,
-            "confirm": r.get("confirm"),
+            "confirm": r.get("confirm"), "rescue": r.get("rescue"),
             **{k: (r["decision"] or {}).get(k) for k in ("nfa_k", "nfa_eps_px", "reason")}}  # fmt: skip
 
 
 def _rift_fields(res: dict[str, Any]) -> dict[str, Any]:
-    """The rift source's null, polish, per-rotation NFAs, NFA's k and e_k, confirmation and
-    reason (source alone, or the workflow's registration record)."""
+    """The rift source's null, polish, per-rotation NFAs, NFA's k and e_k, confirmation, rescue
+    and reason (source alone, or the workflow's registration record)."""
     r = res if "per_rotation" in res else (res.get("rift") or {})
-    keys = ("null_log10_nfa", "polish", "per_rotation", "nfa_k", "nfa_eps_px", "confirm", "reason")
+    keys = ("null_log10_nfa", "polish", "per_rotation", "nfa_k", "nfa_eps_px", "confirm", "rescue", "reason")
     return {k: r.get(k) for k in keys}
 
 

@@ -55,6 +55,9 @@ DEFAULTS: dict[str, Any] = {
     # cell's most similar map keypoint within this radius of its predicted place (``confirm``)
     "confirm_log_p_max": -2.0,  # ... lands within reproj_px in more cells than chance would put
     # there (binomial, p = (reproj_px / radius)^2) with log10 probability below this; 0 = off
+    "rescue_log_nfa_max": -3.0,  # nothing accepted: the rotation whose pose the guided re-match
+    # supports most in the cells its fit did not use (``confirm(exclude=...)``) is accepted when
+    # that binomial tail times the rotations and the tests before is below 10^this; 0 = off
     "nfa_cap_px": 6.0,  # residuals above this count as misses in the NFA (a pose certified to it)
     "log_nfa_max": -2.0,  # accept below this log10 NFA (a source run on every query nothing else
     # accepted: 0.01 expected false alarms a query, not the acceptance's 1)
@@ -514,6 +517,13 @@ def register(
                             "matches": 0, "tests": n_rot, "angle_deg": None, "decision": None}  # fmt: skip
     per_rot: list[tuple[float, float]] = []  # (angle, log10 NFA) of each rotation's pose
     seen: tuple[np.ndarray, ...] = ()  # the best rotation's query keypoints, descriptors, A
+    rescue_on = float(c["rescue_log_nfa_max"]) < 0
+    tree = None
+    if rescue_on or float(c["confirm_log_p_max"]) < 0:
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(mxy)
+    guided: list[dict[str, Any]] = []  # each rotation's guided re-match, for the rescue
     for angle, qxy, qd, A in rotated_features(query_u8, scale, c):
         pairs = match(qd, mm, kc)
         if len(pairs) < 6:
@@ -548,8 +558,13 @@ def register(
         lnfa = float(dec.get("log10_nfa", math.inf))
         per_rot.append((angle, lnfa))
         key = (bool(dec["accepted"]), -lnfa)
-        if best["decision"] is None or key > (bool(best["accepted"]), -best["log10_nfa"]):
+        better = best["decision"] is None or key > (bool(best["accepted"]), -best["log10_nfa"])
+        if better or rescue_on:
             H = refit(Hc, qc_all, m_all, c["reproj_px"]) @ A
+        if rescue_on:
+            x = confirm(H, qxy, qd, A, mxy, md, c, tree=tree, exclude=np.unique(cell[at][inl]))
+            guided.append({**x, "H": H, "angle_deg": angle, "inliers": int(inl.sum()), "matches": len(res)})
+        if better:
             best.update(accepted=bool(dec["accepted"]), H=H, log10_nfa=lnfa,
                         inliers=int(inl.sum()), matches=len(res), angle_deg=angle, decision=dec)  # fmt: skip
             seen = (qxy, qd, A)
@@ -563,25 +578,60 @@ def register(
                             f"log10 NFA {best['log10_nfa']:.1f} not {margin:g} below the best "
                             f"pose at another rotation ({best['null_log10_nfa']:.1f})"}  # fmt: skip
     if best["accepted"] and float(c["confirm_log_p_max"]) < 0:
-        best["confirm"] = conf_ = confirm(best["H"], *seen, mxy, md, c)
+        best["confirm"] = conf_ = confirm(best["H"], *seen, mxy, md, c, tree=tree)
         if not conf_["log10_p"] < float(c["confirm_log_p_max"]):
             best["accepted"] = False
             best["decision"] = {**best["decision"], "accepted": False, "reason":
                                 f"not confirmed: {conf_['hits']} of {conf_['cells']} cells found "
                                 f"their place near it (log10 p {conf_['log10_p']:.1f} >= "
                                 f"{c['confirm_log_p_max']:g})"}  # fmt: skip
+    if guided:
+        best["rescue"] = r = rescue(guided, n_rot + int(tests_before), c)
+        if not best["accepted"] and r["log10_nfa"] < float(c["rescue_log_nfa_max"]):
+            reason = (f"rescued by the guided re-match: {r['hits']} of {r['cells']} cells its fit "
+                      f"did not use found their place (log10 NFA {r['log10_nfa']:.1f})")
+            best.update(accepted=True, H=r.pop("H"), log10_nfa=r["log10_nfa"], angle_deg=r["angle_deg"],
+                        inliers=r["inliers"] + r["hits"], matches=r["matches"],
+                        decision={"accepted": True, "log10_nfa": r["log10_nfa"], "reason": reason})  # fmt: skip
+        r.pop("H", None)
     return best
 
 
+def rescue(guided: list[dict[str, Any]], tests: int, c: dict[str, Any]) -> dict[str, Any]:
+    """Of each rotation's guided re-match in the cells its pose was not fit to (``confirm`` with
+    ``exclude``: evidence the map-wide search did not use), the most unlikely by chance: hits
+    among cells, binomial, at the hit rate measured at the rotations >= ``NULL_FAR_DEG`` away
+    (their poses are chance poses of this query on this map; one hit added; at least
+    (reproj_px / confirm_radius_px)^2); log10 NFA = that tail + log10 ``tests``. On Landsat
+    Pucallpa (both draws, 6,035 poses off by > 20 px, incl. the blanked maps) chance hit rates
+    were 0.01-0.04, 2-4x the disc's area ratio, and no chance pose reached log10 NFA -2.0."""
+    from scipy.stats import binom
+
+    pe = min(1.0, (float(c["reproj_px"]) / float(c["confirm_radius_px"])) ** 2)
+    out: dict[str, Any] = {"log10_nfa": math.inf}
+    for g in guided:
+        far = [o for o in guided if abs((o["angle_deg"] - g["angle_deg"] + 180.0) % 360.0 - 180.0) >= NULL_FAR_DEG]
+        rate = max(pe, (sum(o["hits"] for o in far) + 1) / (sum(o["cells"] for o in far) + 1))
+        if g["hits"] == 0:
+            continue
+        lx = float(binom.logsf(g["hits"] - 1, g["cells"], min(rate, 1.0)) / math.log(10)) + math.log10(tests)
+        if lx < out["log10_nfa"]:
+            out = {**g, "log10_nfa": lx, "hit_rate": rate}
+    return out
+
+
 def confirm(H: np.ndarray, qxy: np.ndarray, qd: np.ndarray, A: np.ndarray, mxy: np.ndarray,
-            md: np.ndarray, c: dict[str, Any], chunk: int = 1024) -> dict[str, Any]:
+            md: np.ndarray, c: dict[str, Any], tree: Any = None, exclude: np.ndarray | None = None,
+            chunk: int = 1024) -> dict[str, Any]:
     """A pose (``H``: query px -> map px) checked by a guided re-match, without the map-wide
     search: in each query cell (``thin_px``), the query keypoint (``qxy`` canvas px, ``A``: query
     px -> canvas px) whose most similar map keypoint within ``confirm_radius_px`` of its
     predicted place is the most similar; a hit when that map keypoint lies within ``reproj_px``.
     At a wrong pose it is anywhere in the disc: a hit with p = (reproj_px / radius)^2, whatever
     made the pose. Returns ``cells``, ``hits`` and ``log10_p``: the binomial tail of hits - 2
-    among cells - 2 (the two cells a rigid pose can be fit to; 0 up to 2 hits). On a mosaic of
+    among cells - 2 (the two cells a rigid pose can be fit to; 0 up to 2 hits); with ``exclude``
+    (cell keys: those the pose was fit to), the tail of the hits among the other cells, evidence
+    the fit did not use. ``tree``: the map keypoints' cKDTree, when built already. On a mosaic of
     120 SRIF references (probed at 24 px), chance poses down to log10 NFA -9 hit 1-3 of 55-85 cells;
     true ones 9-41 of 52-107, where their nearest map descriptors over the whole map missed."""
     from scipy.spatial import cKDTree
@@ -591,7 +641,7 @@ def confirm(H: np.ndarray, qxy: np.ndarray, qd: np.ndarray, A: np.ndarray, mxy: 
     p = np.c_[qxy, np.ones(len(qxy))] @ (H @ np.linalg.inv(A)).T
     pred = p[:, :2] / p[:, 2:3]
     key = cell_key(qxy, float(c["thin_px"]))
-    tree = cKDTree(mxy)
+    tree = cKDTree(mxy) if tree is None else tree
     k = int(min(len(mxy), 64))
     sim = np.full(len(qxy), -np.inf)
     dist = np.full(len(qxy), np.inf)
@@ -605,10 +655,12 @@ def confirm(H: np.ndarray, qxy: np.ndarray, qd: np.ndarray, A: np.ndarray, mxy: 
         r = np.arange(len(b))
         sim[s0 : s0 + chunk], dist[s0 : s0 + chunk] = s[r, b], d[r, b]
     has = np.isfinite(sim)
+    if exclude is not None:
+        has &= ~np.isin(key, exclude)
     _, first = cell_min(-sim[has], key[has])  # per cell: its most similar nearby match
     n, hits = len(first), int((dist[has][first] <= e).sum())
-    pe = min(1.0, (e / rad) ** 2)
-    lp = float(binom.logsf(hits - 3, n - 2, pe) / math.log(10)) if hits > 2 else 0.0
+    pe, fit = min(1.0, (e / rad) ** 2), 0 if exclude is not None else 2
+    lp = float(binom.logsf(hits - fit - 1, n - fit, pe) / math.log(10)) if hits > fit else 0.0
     return {"cells": n, "hits": hits, "log10_p": lp}
 
 
@@ -802,7 +854,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]],
            "null_log10_nfa": None if math.isinf(r["null_log10_nfa"]) else r["null_log10_nfa"],
            "matches": r["matches"], "angle_deg": r["angle_deg"], "map_px": int(area),
            "per_rotation": [[a, round(v, 2) if math.isfinite(v) else None] for a, v in r["per_rotation"]],
-           "map_keypoints": len(mxy), "nearest_k": n_candidates(len(md), c), "confirm": r.get("confirm"),
+           "map_keypoints": len(mxy), "nearest_k": n_candidates(len(md), c), "confirm": r.get("confirm"), "rescue": r.get("rescue"),
            "reason": f"fewer than min_cells ({c['min_cells']}) matched cells at every rotation"
            if r["decision"] is None else r["decision"].get("reason", ""),
            "seconds": time.perf_counter() - t0}  # fmt: skip
