@@ -610,7 +610,7 @@ def rescue(guided: list[dict[str, Any]], tests: int, c: dict[str, Any]) -> dict[
     pe = min(1.0, (float(c["reproj_px"]) / float(c["confirm_radius_px"])) ** 2)
     out: dict[str, Any] = {"log10_nfa": math.inf}
     for g in guided:
-        far = [o for o in guided if abs((o["angle_deg"] - g["angle_deg"] + 180.0) % 360.0 - 180.0) >= NULL_FAR_DEG]
+        far = [o for o in guided if _angle_gap(o["angle_deg"], g["angle_deg"]) >= NULL_FAR_DEG]
         rate = max(pe, (sum(o["hits"] for o in far) + 1) / (sum(o["cells"] for o in far) + 1))
         if g["hits"] == 0:
             continue
@@ -638,9 +638,12 @@ def confirm(H: np.ndarray, qxy: np.ndarray, qd: np.ndarray, A: np.ndarray, mxy: 
     from scipy.stats import binom
 
     e, rad = float(c["reproj_px"]), float(c["confirm_radius_px"])
+    key = cell_key(qxy, float(c["thin_px"]))
+    if exclude is not None:
+        keep = ~np.isin(key, exclude)
+        qxy, qd, key = qxy[keep], qd[keep], key[keep]
     p = np.c_[qxy, np.ones(len(qxy))] @ (H @ np.linalg.inv(A)).T
     pred = p[:, :2] / p[:, 2:3]
-    key = cell_key(qxy, float(c["thin_px"]))
     tree = cKDTree(mxy) if tree is None else tree
     k = int(min(len(mxy), 64))
     sim = np.full(len(qxy), -np.inf)
@@ -655,8 +658,6 @@ def confirm(H: np.ndarray, qxy: np.ndarray, qd: np.ndarray, A: np.ndarray, mxy: 
         r = np.arange(len(b))
         sim[s0 : s0 + chunk], dist[s0 : s0 + chunk] = s[r, b], d[r, b]
     has = np.isfinite(sim)
-    if exclude is not None:
-        has &= ~np.isin(key, exclude)
     _, first = cell_min(-sim[has], key[has])  # per cell: its most similar nearby match
     n, hits = len(first), int((dist[has][first] <= e).sum())
     pe, fit = min(1.0, (e / rad) ** 2), 0 if exclude is not None else 2
@@ -689,8 +690,12 @@ def _null_log_nfa(per_rot: list[tuple[float, float]], angle: float | None, far_d
     place blanked: accepted at -2.5 against -1.0 at another rotation). inf when there is none."""
     if angle is None:
         return math.inf
-    far = [v for a, v in per_rot if abs((a - angle + 180.0) % 360.0 - 180.0) >= far_deg]
-    return min(far, default=math.inf)
+    return min((v for a, v in per_rot if _angle_gap(a, angle) >= far_deg), default=math.inf)
+
+
+def _angle_gap(a: float, b: float) -> float:
+    """|a - b| in degrees, wrapped to 0..180."""
+    return abs((a - b + 180.0) % 360.0 - 180.0)
 
 
 def polish(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, Any] | None
