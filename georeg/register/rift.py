@@ -651,9 +651,9 @@ def confirm(H: np.ndarray, qxy: np.ndarray, qd: np.ndarray, A: np.ndarray, mxy: 
     for s0 in range(0, len(qxy), chunk):
         d, nn = tree.query(pred[s0 : s0 + chunk], k=k, distance_upper_bound=rad)
         d, nn = d.reshape(len(d), -1), nn.reshape(len(nn), -1)
-        ok = np.isfinite(d)
-        s = np.einsum("ijk,ik->ij", md[np.where(ok, nn, 0)], qd[s0 : s0 + chunk])
-        s = np.where(ok, s, -np.inf)
+        i, j = np.nonzero(np.isfinite(d))  # only the neighbours within the radius
+        s = np.full(d.shape, -np.inf, np.float32)
+        s[i, j] = np.einsum("ij,ij->i", md[nn[i, j]], qd[s0 + i])
         b = np.argmax(s, axis=1)
         r = np.arange(len(b))
         sim[s0 : s0 + chunk], dist[s0 : s0 + chunk] = s[r, b], d[r, b]
