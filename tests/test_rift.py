@@ -412,3 +412,14 @@ def test_pucallpa_true_pose_rescued_by_the_guided_rematch(shared_data):
     q, sc = _pucallpa("puc_2015_on_1990_0_1.6um_blanked")
     b = rift.register(next(iter(q.bands.values())), sc.map_gray, q.gsd / sc.map_gsd, _acc(), {})
     assert not b["accepted"] and b["rescue"]["log10_nfa"] > rift.DEFAULTS["rescue_log_nfa_max"]
+
+
+def test_map_matcher_kept_for_the_same_map():
+    """The last map's matcher (its faiss index) serves the next query of that map; another map,
+    or other search settings, get their own."""
+    md = np.random.default_rng(0).random((50, 8)).astype(np.float32)
+    c = rift.rift_conf({})
+    a = rift.map_matcher(md, c)
+    assert rift.map_matcher(md, c) is a
+    assert rift.map_matcher(md.copy(), c) is not a
+    assert rift.map_matcher(md, {**c, "nprobe": 8}) is not a
