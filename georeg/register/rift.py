@@ -506,7 +506,9 @@ def register(
     rotations + ``tests_before``, the tests of the sources that ran before). Returns ``accepted``,
     ``H`` (query px -> map px), ``log10_nfa``, ``inliers``, ``matches`` (cells), ``tests``,
     ``angle_deg``, ``lowest_log10_nfa``, ``null_log10_nfa`` (the best pose at a rotation
-    >= ``NULL_FAR_DEG`` away; accepted only ``null_margin`` decades below it) and ``decision``.
+    >= ``NULL_FAR_DEG`` away; accepted only ``null_margin`` decades below it), ``confirm`` (the
+    accepted pose's guided re-match), ``rescue`` (every rotation's re-match in the cells its fit
+    did not use: the pose accepted when nothing else is, ``rescue``) and ``decision``.
     A rotation with fewer than ``min_cells`` matched cells is not scored."""
     from georeg.register import acceptance
 
