@@ -624,13 +624,11 @@ def rescue(guided: list[dict[str, Any]], tests: int, c: dict[str, Any]) -> dict[
     were 0.01-0.04, 2-4x the disc's area ratio, and no chance pose reached log10 NFA -2.0."""
     from scipy.stats import binom
 
-    pe = min(1.0, (float(c["reproj_px"]) / float(c["confirm_radius_px"])) ** 2)
+    pe = _disc_ratio(c)
     out: dict[str, Any] = {"log10_nfa": math.inf}
-    for g in guided:
+    for g in (g for g in guided if g["hits"] > 0):
         far = [o for o in guided if _angle_gap(o["angle_deg"], g["angle_deg"]) >= NULL_FAR_DEG]
         rate = max(pe, (sum(o["hits"] for o in far) + 1) / (sum(o["cells"] for o in far) + 1))
-        if g["hits"] == 0:
-            continue
         lx = float(binom.logsf(g["hits"] - 1, g["cells"], min(rate, 1.0)) / math.log(10)) + math.log10(tests)
         if lx < out["log10_nfa"]:
             out = {**g, "log10_nfa": lx, "hit_rate": rate}
@@ -677,7 +675,7 @@ def confirm(H: np.ndarray, qxy: np.ndarray, qd: np.ndarray, A: np.ndarray, mxy: 
     has = np.isfinite(sim)
     _, first = cell_min(-sim[has], key[has])  # per cell: its most similar nearby match
     n, hits = len(first), int((dist[has][first] <= e).sum())
-    pe, fit = min(1.0, (e / rad) ** 2), 0 if exclude is not None else 2
+    pe, fit = _disc_ratio(c), 0 if exclude is not None else 2
     lp = float(binom.logsf(hits - fit - 1, n - fit, pe) / math.log(10)) if hits > fit else 0.0
     return {"cells": n, "hits": hits, "log10_p": lp}
 
@@ -708,6 +706,11 @@ def _null_log_nfa(per_rot: list[tuple[float, float]], angle: float | None, far_d
     if angle is None:
         return math.inf
     return min((v for a, v in per_rot if _angle_gap(a, angle) >= far_deg), default=math.inf)
+
+
+def _disc_ratio(c: dict[str, Any]) -> float:
+    """A chance hit's probability by area: (reproj_px / confirm_radius_px)^2, at most 1."""
+    return min(1.0, (float(c["reproj_px"]) / float(c["confirm_radius_px"])) ** 2)
 
 
 def _angle_gap(a: float, b: float) -> float:
