@@ -204,10 +204,14 @@ def test_map_features_cached_per_orthophoto(tmp_path):
     _, again = rift.source(qi, view, [], conf)
     assert len(reads) == n_reads  # read back, not computed
     assert again["accepted"] and again["per_rotation"] == first["per_rotation"]
-    _, plain = rift.source(qi, MapView(src, _box_reader(m, g)), [], conf)  # no identity: computed
-    assert plain["per_rotation"] == first["per_rotation"]  # the same result
-    rift.source(qi, MapView(src, reader, "ortho-b", str(tmp_path)), [], conf)
-    rift.source(qi, view, [], {**conf, "rift": {**conf["rift"], "patch": 64}})
+    # the map features alone from here (the source's bounds and GSD): no identity, computed,
+    # the same as read back; another identity or feature setting, computed and kept again
+    b, c = tuple(float(v) for v in src.bounds), rift.rift_conf(conf["rift"])
+    kept = rift.cached_map_features(view, b, g, c)
+    plain = rift.cached_map_features(MapView(src, _box_reader(m, g)), b, g, c)
+    assert all(np.array_equal(x, y) for x, y in zip(kept, plain, strict=True))
+    rift.cached_map_features(MapView(src, reader, "ortho-b", str(tmp_path)), b, g, c)
+    rift.cached_map_features(view, b, g, {**c, "patch": 64})
     assert len(list(tmp_path.glob("rift_*.npz"))) == 3 and len(reads) == 2 * n_reads
 
 
