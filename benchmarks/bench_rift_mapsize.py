@@ -19,7 +19,6 @@ does that): a query accepted on an overlapping copy of its place counts as a fal
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time
@@ -31,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_crossspectral as bx  # noqa: E402
 import bench_devset as bd  # noqa: E402
 
-from georeg.register import rift  # noqa: E402
+from georeg.io.atomic import write_json  # noqa: E402
 
 
 def references() -> list[tuple[str, int, tuple[np.ndarray, np.ndarray, np.ndarray]]]:
@@ -43,15 +42,20 @@ def references() -> list[tuple[str, int, tuple[np.ndarray, np.ndarray, np.ndarra
     return out
 
 
-def mosaic(items: list, mpx: float) -> tuple[bx.Scene, dict[tuple[str, int], np.ndarray]]:
-    """The first references whose pixels reach ``mpx`` million, packed: the scene and each
-    reference's 3 x 3 reference px -> map px."""
+def first(items: list, mpx: float) -> list:
+    """The first ``items`` whose references hold ``mpx`` million pixels."""
     take, total = [], 0
     for it in items:
         if total >= mpx * 1e6:
             break
         take.append(it)
         total += it[2][0].size
+    return take
+
+
+def mosaic(take: list, mpx: float) -> tuple[bx.Scene, dict[tuple[str, int], np.ndarray]]:
+    """The references of ``take`` packed: the scene and each reference's 3 x 3 reference px ->
+    map px."""
     offs, (H, W) = bd.pack([it[2][0].shape for it in take])
     img = np.zeros((H, W), np.uint8)
     place = {}
@@ -72,46 +76,31 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO if a.v else logging.WARNING, format="%(message)s")
     items = references()
     sizes = [float(s) for s in a.mpx.split(",")]
-    chosen = mosaic(items, min(sizes))[1]
-    picks = [k for k in chosen][: a.queries]  # interleaved modalities: oo, oi, od, oo, ...
+    picks = [(m, i) for m, i, _ in first(items, min(sizes))[: a.queries]]  # oo, oi, od, oo, ...
     data = {(m, i): d for m, i, d in items}
-    reg = bx.workflow_register_conf()
-    conf = rift.rift_conf({})
+    spec = {"rift": {"polish": False}}  # rift alone, as rift.register decides
     rows = []
     for mpx in sizes:
-        sc, place = mosaic(items, mpx)
-        c0 = time.process_time()
-        feats = rift.map_features(sc.map_gray, conf)
-        map_s = time.process_time() - c0
-        print(f"{sc.name}: {sc.map_gray.size / 1e6:.1f} Mpx, {len(place)} references, "
-              f"{len(feats[0])} map keypoints, features {map_s:.0f} CPU s", flush=True)  # fmt: skip
+        sc, place = mosaic(first(items, mpx), mpx)
         for m, i in picks:
-            ref, q, A0 = data[(m, i)]
+            _, q, A0 = data[(m, i)]
             qq = bd.srif_query(m, i, q, A0, [place[(m, i)]], sc.name)
-            c1 = time.process_time()
-            r = rift.register(q, sc.map_gray, qq.gsd / sc.map_gsd, reg["acceptance"], conf, feats,
-                              qq.gsd, sc.map_gsd)  # fmt: skip
-            cpu = time.process_time() - c1
-            g = sc.map_gsd
-            H = None if r["H"] is None else np.diag([g, -g, 1.0]) @ r["H"]
-            j = bd.judge(qq, sc, {"accepted": r["accepted"], "H": H})
-            rec = {"mpx": round(sc.map_gray.size / 1e6, 1), "references": len(place),
-                   "map_keypoints": len(feats[0]), "map_cpu_seconds": map_s, "query": qq.name,
-                   "outcome": j["outcome"], "error_px": j["error_px"], "cpu_seconds": cpu,
-                   "log10_nfa": r["log10_nfa"]}  # fmt: skip
-            rows.append(rec)
+            c0 = time.process_time()
+            r = bd.run_rift(qq, sc, spec, 0)  # the map's features built on its first query
+            cpu = time.process_time() - c0 - r["map_cpu_seconds"]
+            if r["map_cpu_seconds"]:
+                map_s, n_kp = r["map_cpu_seconds"], len(next(iter(bd._RIFT_MAPS.values()))[0])
+                print(f"{sc.name}: {sc.map_gray.size / 1e6:.1f} Mpx, {len(place)} references, "
+                      f"{n_kp} map keypoints, features {map_s:.0f} CPU s", flush=True)  # fmt: skip
+            j = bd.judge(qq, sc, r)
+            rows.append({"mpx": round(sc.map_gray.size / 1e6, 1), "references": len(place),
+                         "map_keypoints": n_kp, "map_cpu_seconds": map_s, "query": qq.name,
+                         "outcome": j["outcome"], "error_px": j["error_px"], "cpu_seconds": cpu,
+                         "log10_nfa": r["log10_nfa"]})  # fmt: skip
             print(f"  {qq.name:12s} {j['outcome']:12s} {cpu:6.1f} CPU s  log10 NFA {r['log10_nfa']:.1f}",
                   flush=True)  # fmt: skip
-        write(a.out, rows)  # after each mosaic: a long run cut short keeps what it measured
+        write_json(a.out, rows)  # after each mosaic: a long run cut short keeps what it measured
     return 0
-
-
-def write(path: str, rows: list[dict]) -> None:
-    """``rows`` as JSON at ``path``, through a temporary name."""
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(path).with_suffix(".tmp")
-    tmp.write_text(json.dumps(rows, indent=1))
-    tmp.replace(path)
 
 
 if __name__ == "__main__":
