@@ -542,6 +542,7 @@ def run_fuse_parts(
         "prior": prior_record(meta.get("prior"), bounds),
         "level": lrec,
         "sources": rec["sources"],
+        "second_pass": rec["second_pass"],
         "split": rec["split"],
         "parts": [
             {
