@@ -585,6 +585,7 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
         "parts": split.get("parts"),
         "level": res.get("level"),
         "sources": res.get("sources"),
+        "second_pass": res.get("second_pass"),
         "rift": split.get("rift"),
         "whole": split.get("whole_query_searched"),
         "features": split.get("query_features"),

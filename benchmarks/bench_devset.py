@@ -624,6 +624,7 @@ def main(argv: list[str] | None = None) -> int:
                    "places": len(getattr(q, "alts", []) or []),
                    "truth_audit": getattr(q, "truth_audit", None),
                    **_rift_fields(res), "ortho_gain": res.get("ortho_gain"),
+                   "second_pass": res.get("second_pass"),
                    "H": None if res.get("H") is None else np.asarray(res["H"]).tolist()}  # fmt: skip
             rows[name].append(rec)
             append_record(partial, name, rec)

@@ -297,25 +297,42 @@ SOURCES: tuple[tuple[str, Source], ...] = (
 )
 
 
+#: a source's record when a candidate was accepted before it (``decide`` runs it in a second
+#: pass when the verifier refuses that candidate)
+SKIPPED = "a search was accepted"
+
+
 def run_sources(
-    q: QueryInput, view: MapView, parts: list[dict[str, Any]], conf: dict[str, Any]
+    q: QueryInput,
+    view: MapView,
+    parts: list[dict[str, Any]],
+    conf: dict[str, Any],
+    earlier: tuple[dict[str, Any], list[dict[str, Any]]] | None = None,
 ) -> tuple[list[dict[str, Any]], dict[str, Any], list[dict[str, Any]], dict[str, float]]:
     """After the parts' feature search, every source of ``SOURCES`` in turn while nothing is
     accepted (the whole-query search also records the split plan). Each source sees, as
     ``q.tests_before``, the candidates tried by the feature search and the sources before it:
     its NFA counts them with its own (one a-contrario count for the whole search, so a source
-    added at the end cannot add false accepts by testing on its own budget).
+    added at the end cannot add false accepts by testing on its own budget). ``earlier``: an
+    earlier pass's source records and ``sources`` (``decide``'s second pass): only the sources it
+    skipped run, after every test it made.
 
     Returns the parts (one more per accepted source), the split record of registration.json
-    (the plan; ``small``: the small-query sources' records), the ``sources`` record (name,
-    candidates tried, accepted, seconds of each source that ran) and their timings."""
-    ran = [{"name": "features", "accepted": any(p.get("accepted") for p in parts),
-            "candidates": int(sum(p.get("candidates_tried", 0) for p in parts))}]  # fmt: skip
-    recs: dict[str, dict[str, Any]] = {}
+    (the plan; ``small``: the small-query sources' records; ``sources_by_name``: every source's
+    record, which ``decide`` takes out), the ``sources`` record (name, candidates tried, accepted, seconds of each source
+    that ran) and their timings."""
+    if earlier is None:
+        recs: dict[str, dict[str, Any]] = {}
+        ran = [{"name": "features", "accepted": any(p.get("accepted") for p in parts),
+                "candidates": int(sum(p.get("candidates_tried", 0) for p in parts))}]  # fmt: skip
+    else:
+        recs, ran = dict(earlier[0]), list(earlier[1])
     timings: dict[str, float] = {}
     for name, fn in SOURCES:
+        if name in recs and recs[name].get("reason") != SKIPPED:
+            continue  # run in the earlier pass
         if any(p.get("accepted") for p in parts) and name != "whole_query":
-            recs[name] = {"ran": False, "reason": "a search was accepted"}
+            recs[name] = {"ran": False, "reason": SKIPPED}
             continue
         t0 = time.perf_counter()
         n0 = len(parts)
@@ -326,12 +343,13 @@ def run_sources(
             ran.append({"name": name, "accepted": any(p.get("accepted") for p in parts[n0:]),
                         "candidates": int(recs[name].get("candidates", 0)),
                         "seconds": round(timings[name], 3)})  # fmt: skip
-    split = recs["whole_query"]["plan"]
+    split = dict(recs["whole_query"]["plan"])
     split["small"] = dict(recs["small_windows"])
     if recs["cfog_null"].get("ran"):
         split["small"]["cfog_null"] = recs["cfog_null"]
     if (recs.get("rift") or {}).get("ran"):
         split["rift"] = recs["rift"]
+    split["sources_by_name"] = recs
     return parts, split, ran, timings
 
 
@@ -342,12 +360,45 @@ def decide(
     conf: dict[str, Any],
     dsm: str | None = None,
 ) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Sources (``run_sources``), fusion (``fuse``), then the verifier's dense terms on the
-    fused fit: the CFOG null scan (``small.null_check``, may replace a small query's fit), the
-    orthophoto (``ortho_check``) and the map's elevation (``lidar_check``; ``dsm`` None: not
-    run). Returns the fused result and the record: ``split``, ``parts``, ``sources``, the
-    terms' records (None when not run) and ``timings_s``."""
+    """Sources (``run_sources``), then ``check_fused``: fusion and the verifier's terms. When the
+    verifier refuses the accepted candidates and sources were skipped because of them, those
+    candidates are marked refused (``refused``: the reason) and the skipped sources run in a
+    second pass, counting every test of the first, and their candidate is verified the same way
+    (SRIF optical-optical 7 on a 40-reference mosaic: part 0's pose did not hold over the whole
+    query, and rift had not run). Returns the fused result and the record: ``split``, ``parts``,
+    ``sources``, the terms' records (None when not run), ``timings_s`` and ``second_pass``."""
     parts, split, ran, timings = run_sources(q, view, parts, conf)
+    recs = split.pop("sources_by_name")
+    fused, rec = check_fused(q, view, parts, conf, split, dsm, timings)
+    skipped = [n for n, r in recs.items() if r.get("reason") == SKIPPED]
+    if fused.get("status") == "registered" or not skipped:
+        return fused, {**rec, "sources": ran, "second_pass": None}
+    why = str(fused.get("reason") or "not registered")
+    parts = [{**p, "accepted": False, "refused": why} if p.get("accepted") else p for p in parts]
+    log.info("the verifier refused the accepted candidates (%s): %s run", why, ", ".join(skipped))
+    parts, split, ran, t2 = run_sources(q, view, parts, conf, (recs, ran))
+    split.pop("sources_by_name")
+    timings.update(t2)
+    second = {"refused": why, "sources": skipped}
+    if not any(p.get("accepted") for p in parts):
+        return fused, {**rec, "split": split, "parts": parts, "sources": ran, "second_pass": second}
+    fused, rec = check_fused(q, view, parts, conf, split, dsm, timings)
+    return fused, {**rec, "sources": ran, "second_pass": second}
+
+
+def check_fused(
+    q: QueryInput,
+    view: MapView,
+    parts: list[dict[str, Any]],
+    conf: dict[str, Any],
+    split: dict[str, Any],
+    dsm: str | None,
+    timings: dict[str, float],
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Fusion (``fuse``), then the verifier's dense terms on the fused fit: the CFOG null scan
+    (``small.null_check``, may replace a small query's fit), the orthophoto (``ortho_check``)
+    and the map's elevation (``lidar_check``; ``dsm`` None: not run). Returns the fused result
+    and the record: ``split``, ``parts``, the terms' records and ``timings_s``."""
     t1 = time.perf_counter()
     fused = fuse(q.features, view.source, parts, conf, q.gsd, q.seed)
     timings["fuse_match"] = time.perf_counter() - t1
@@ -366,8 +417,8 @@ def decide(
     if lidar is not None:
         timings["lidar_check"] = time.perf_counter() - t1
         fused = lidar_check.veto(fused, lidar)
-    return fused, {"split": split, "parts": parts, "sources": ran, "null_check": nrec,
-                   "ortho_check": orec, "lidar_check": lidar, "timings_s": timings}  # fmt: skip
+    return fused, {"split": split, "parts": parts, "null_check": nrec, "ortho_check": orec,
+                   "lidar_check": lidar, "timings_s": timings}  # fmt: skip
 
 
 def register_query(
@@ -491,6 +542,7 @@ def run_fuse_parts(
         "prior": prior_record(meta.get("prior"), bounds),
         "level": lrec,
         "sources": rec["sources"],
+        "second_pass": rec["second_pass"],
         "split": rec["split"],
         "parts": [
             {
