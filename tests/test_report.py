@@ -465,3 +465,9 @@ def test_sources_text_names_each_source_and_why_rift_decided_nothing() -> None:
     reg["sources"][1]["accepted"], reg["split"]["rift"]["accepted"] = True, True
     assert sources_text(reg).endswith("rift (36 tried, accepted): log10 NFA -4.7, other rotations' best -2.1, 23 cells")
     assert sources_text({}) is None
+    reg["second_pass"] = {"refused": "part 0's pose does not hold over the whole query",
+                          "sources": ["small_windows", "cfog_null", "rift"]}  # fmt: skip
+    assert sources_text(reg).endswith(
+        "23 cells; second pass (small_windows, cfog_null, rift) after the verifier refused the "
+        "first candidate: part 0's pose does not hold over the whole query"
+    )

@@ -320,7 +320,8 @@ def level_text(level: Any) -> str | None:
 
 def sources_text(reg: Mapping[str, Any]) -> str | None:
     """``registration.json``'s ``sources`` (which sources of candidates ran, what each tried,
-    which was accepted) as one line, with the phase-congruency source's decision when it ran."""
+    which was accepted) as one line, with the phase-congruency source's decision when it ran and
+    the second pass when the verifier refused the first pass's candidate (``fuse.decide``)."""
     ran = reg.get("sources") or []
     if not ran:
         return None
@@ -335,6 +336,10 @@ def sources_text(reg: Mapping[str, Any]) -> str | None:
             if not rift.get("accepted") and rift.get("reason"):
                 t += f"; {rift['reason']}"
         out.append(t)
+    sp = reg.get("second_pass")
+    if sp:  # the verifier refused the first pass's candidate: the skipped sources ran after it
+        out.append(f"second pass ({', '.join(sp.get('sources') or [])}) after the verifier "
+                   f"refused the first candidate: {sp.get('refused')}")  # fmt: skip
     return "; ".join(out)
 
 
