@@ -28,7 +28,7 @@ log = logging.getLogger(__name__)
 Bounds = tuple[float, float, float, float]
 
 DEFAULTS: dict[str, Any] = {
-    "knn": 1,  # nearest map features per query descriptor (10 before session 25: docs/BENCHMARKS.md "Session 25")
+    "knn": 10,  # nearest map features per query descriptor
     "nprobe": 8,  # words whose features are searched per query descriptor
     "cell_frac": 0.25,  # vote cell side = this x the footprint diagonal
     "bin_deg": 30.0,  # rotation bin
