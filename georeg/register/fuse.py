@@ -319,8 +319,8 @@ def run_sources(
 
     Returns the parts (one more per accepted source), the split record of registration.json
     (the plan; ``small``: the small-query sources' records; ``sources_by_name``: every source's
-    record, which ``decide`` takes out), the ``sources`` record (name, candidates tried, accepted, seconds of each source
-    that ran) and their timings."""
+    record, which ``decide`` takes out), the ``sources`` record (name, candidates tried,
+    accepted, seconds of each source that ran) and their timings."""
     if earlier is None:
         recs: dict[str, dict[str, Any]] = {}
         ran = [{"name": "features", "accepted": any(p.get("accepted") for p in parts),
