@@ -39,12 +39,6 @@ import bench_devset as bd  # noqa: E402
 from georeg.register import null_scan, rift  # noqa: E402
 
 TRUE_PX = 5.0  # a pose this close to the truth (median, map px) is the true one
-FAR_DEG = 25.0  # rift poses this far in rotation give the chance hit rate
-
-
-def _gap(a: float, b: float) -> float:
-    d = abs(a - b) % 360
-    return min(d, 360 - d)
 
 
 def _err(q: Any, sc: Any, H: np.ndarray | None) -> float | None:
@@ -104,7 +98,7 @@ def probe(q: Any, sc: Any, conf: dict[str, Any], feats: tuple[np.ndarray, np.nda
         lx = None
         if best is not None:
             a, x = best
-            far = [o for o in guided if _gap(o["angle_deg"], a) >= FAR_DEG]
+            far = [o for o in guided if rift._angle_gap(o["angle_deg"], a) >= rift.NULL_FAR_DEG]
             rate = max(rift._disc_ratio(conf),
                        (sum(o["hits"] for o in far) + 1) / (sum(o["cells"] for o in far) + 1))  # fmt: skip
             tail = (
