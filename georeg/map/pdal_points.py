@@ -17,19 +17,21 @@ stage and the file.
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import functools
 import json
 import logging
 import os
+import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+import laspy
 import numpy as np
 import pyproj
 from pyproj import CRS as PCRS
-from pyproj import Transformer
 
 from georeg.io.errors import ConfigError, InputError
 from georeg.map import lidar
@@ -246,6 +248,24 @@ def _field(arr: np.ndarray, name: str, dtype: Any) -> np.ndarray:
     return np.zeros(arr.shape[0], dtype)
 
 
+def _crop_writer(info: lidar.LasInfo, filename: str) -> dict[str, Any]:
+    """``writers.las`` for the cropped stream: LAS 1.4 format 6 (8-bit classes, 4-bit returns),
+    1e-7 degree (~1 cm) or 1/1000 of the file's unit, offset at the header's lower-left."""
+    scale = 1e-7 if info.crs.is_geographic else 1e-3
+    return {
+        "type": "writers.las",
+        "filename": filename,
+        "minor_version": 4,
+        "dataformat_id": 6,
+        "scale_x": scale,
+        "scale_y": scale,
+        "scale_z": 1e-3,
+        "offset_x": float(info.bounds[0]),
+        "offset_y": float(info.bounds[1]),
+        "offset_z": 0.0,
+    }
+
+
 def iter_chunks(
     info: lidar.LasInfo,
     map_crs: PCRS,
@@ -254,37 +274,36 @@ def iter_chunks(
 ) -> Iterator[lidar.Points]:
     """PDAL's twin of :func:`georeg.map.lidar.iter_chunks`: stream, crop, reproject, metres.
 
-    The crop to ``bounds`` (grown a little, in the file's CRS) runs inside the PDAL stream, so
-    memory stays ~ one chunk plus the kept points.
+    PDAL streams the file through the crop to ``bounds`` (grown a little, in the file's CRS) into
+    a temporary LAS file, which laspy then reads chunk by chunk, so memory stays ~ one chunk.
+    Not ``Pipeline.iterator``: in python-pdal 3.5.5 its reader thread hands over the end of the
+    stream without taking the lock, and the consumer can wait for ever (seen in CI; a loop of
+    small reads reproduces it).
     """
     import pdal
 
-    same = info.crs == map_crs
-    tr = None if same else Transformer.from_crs(info.crs, map_crs, always_xy=True)
     stages = [reader_stage(info.path)]
     if bounds is not None:
         pre = lidar.bounds_in_file_crs(bounds, map_crs, info.crs)
         stages.append({"type": "filters.crop", "bounds": f"([{pre[0]!r},{pre[2]!r}],[{pre[1]!r},{pre[3]!r}])"})
-    try:
-        for arr in pdal.Pipeline(json.dumps(stages)).iterator(chunk_size=int(chunk_points)):
-            if arr.shape[0] == 0:
-                continue
-            x, y = _field(arr, "X", np.float64), _field(arr, "Y", np.float64)
-            if tr is not None:
-                x, y = (np.asarray(v) for v in tr.transform(x, y))
-            pts = lidar.Points(
-                x,
-                y,
-                _field(arr, "Z", np.float64) * info.z_to_m,
-                *(_field(arr, d, t) for d, t in DIMS[3:]),
-            )
-            pts = lidar.in_bounds(pts, x, y, bounds)
-            if len(pts):
-                yield pts
-    except InputError:
-        raise
-    except Exception as exc:  # PDAL raises RuntimeError with the stage's message
-        raise InputError(info.path, f"PDAL cannot read it ({exc})", "truncated or corrupt?") from exc
+    with tempfile.TemporaryDirectory(prefix="georeg-pdal-") as tmp:
+        out = os.path.join(tmp, "crop.las")
+        stages.append(_crop_writer(info, out))
+        try:
+            pipe = pdal.Pipeline(json.dumps(stages))
+            if pipe.streamable:
+                pipe.execute_streaming(chunk_size=int(chunk_points))
+            else:  # a reader without stream mode: PDAL holds the file's points
+                pipe.execute()
+            with laspy.open(out) as f:
+                n = int(f.header.point_count)
+        except InputError:
+            raise
+        except Exception as exc:  # PDAL raises RuntimeError with the stage's message
+            raise InputError(info.path, f"PDAL cannot read it ({exc})", "truncated or corrupt?") from exc
+        if n:
+            crop = dataclasses.replace(info, path=out, point_count=n)
+            yield from lidar.iter_chunks(crop, map_crs, bounds, chunk_points)
 
 
 def read_points(
