@@ -587,6 +587,8 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
         "sources": res.get("sources"),
         "second_pass": res.get("second_pass"),
         "rift": split.get("rift"),
+        "learned": split.get("learned"),
+        "pose_source": res.get("pose_source"),
         "whole": split.get("whole_query_searched"),
         "features": split.get("query_features"),
         "part_side": split.get("part_side_map_px"),

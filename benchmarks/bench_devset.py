@@ -414,9 +414,10 @@ METHODS: dict[str, dict[str, Any]] = {
     "sift_plain": bx.METHODS["sift_plain"],
     "wf_default": {"pipeline": {}, "bands": 1},
     # hypothesis sources of issue 34 item 3 were measured here and not kept (CFOG structure:
-    # georeg/register/structure.py, XFeat: georeg/register/learned.py; verified by
-    # georeg/register/candidate.verify): commit cd6ab47 has them, the figures are in
-    # docs/experiments/2026-11-26-devset.md
+    # georeg/register/structure.py, XFeat with mutual nearest neighbours and its own verifier:
+    # georeg/register/learned.py; verified by georeg/register/candidate.verify): commit cd6ab47
+    # has them, the figures are in docs/experiments/2026-11-26-devset.md; XFeat came back in
+    # session 27 inside rift's search and acceptance (src_xfeat, wf_learned)
     # RIFT-style phase-congruency features (georeg/register/rift.py), verified by the acceptance
     "src_rift": {"rift": {}},
     "src_rift12": {"rift": {"rotations": 12, "max_angle_deg": 20.0}},  # v3: 30 deg steps
@@ -628,6 +629,10 @@ def main(argv: list[str] | None = None) -> int:
                    "truth_audit": getattr(q, "truth_audit", None),
                    **_rift_fields(res), "ortho_gain": res.get("ortho_gain"),
                    "second_pass": res.get("second_pass"),
+                   "sources": res.get("sources"), "pose_source": res.get("pose_source"),
+                   "learned": {k: (res.get("learned") or {}).get(k) for k in
+                               ("ran", "accepted", "log10_nfa", "null_log10_nfa", "inliers",
+                                "matches", "angle_deg", "confirm", "rescue", "reason", "seconds")},
                    "H": None if res.get("H") is None else np.asarray(res["H"]).tolist()}  # fmt: skip
             rows[name].append(rec)
             append_record(partial, name, rec)
