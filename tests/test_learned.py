@@ -85,3 +85,26 @@ def test_enabled_auto_true_false_without_xfeat(monkeypatch):
         rift.learned_source(q, None, [], {"learned": {"enabled": True}})
     _, rec = rift.learned_source(q, None, [], {"learned": {"enabled": False}})
     assert rec == {"ran": False, "reason": "disabled"}
+
+
+def test_registration_record_says_when_learned_did_not_run(monkeypatch):
+    """``fuse.run_sources`` keeps the learned source's record in ``split`` whether or not it ran,
+    so a result tells whether it depended on the extra being installed."""
+    from georeg.register import fuse
+
+    monkeypatch.setattr(rift, "xfeat_import_error", lambda: "ModuleNotFoundError: No module named 'torch'")
+    calls = []
+
+    def stub(name):
+        def fn(q, view, parts, conf):
+            calls.append(name)
+            return parts, ({"ran": False, "reason": "stub"} if name != "whole_query"
+                           else {"ran": False, "candidates": 0, "plan": {}})  # fmt: skip
+        return fn
+
+    sources = tuple((n, stub(n)) if n != "learned" else (n, f) for n, f in fuse.SOURCES)
+    monkeypatch.setattr(fuse, "SOURCES", sources)
+    q = fuse.QueryInput(np.zeros((8, 8), np.uint8), None, 1.0, [1.0], 0)  # type: ignore[arg-type]
+    _, split, ran, _ = fuse.run_sources(q, None, [], {"learned": {"enabled": "auto"}})  # type: ignore[arg-type]
+    assert "not installed" in split["learned"]["reason"] and not split["learned"]["ran"]
+    assert [r["name"] for r in ran] == ["features"]

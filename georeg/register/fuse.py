@@ -348,9 +348,10 @@ def run_sources(
     split["small"] = dict(recs["small_windows"])
     if recs["cfog_null"].get("ran"):
         split["small"]["cfog_null"] = recs["cfog_null"]
-    for name in ("rift", "learned"):
-        if (recs.get(name) or {}).get("ran"):
-            split[name] = recs[name]
+    if (recs.get("rift") or {}).get("ran"):
+        split["rift"] = recs["rift"]
+    if recs.get("learned"):  # whether it ran or why not (not installed): results may differ
+        split["learned"] = recs["learned"]
     split["sources_by_name"] = recs
     return parts, split, ran, timings
 
