@@ -87,6 +87,22 @@ def test_enabled_auto_true_false_without_xfeat(monkeypatch):
     assert rec == {"ran": False, "reason": "disabled"}
 
 
+def test_input_check_names_the_missing_extra_when_learned_is_forced_on(monkeypatch):
+    """``enabled: true`` without XFeat stops the run at the input check, before any job;
+    ``auto`` and ``false`` do not."""
+    from georeg.register import inputs
+
+    monkeypatch.setattr(inputs, "xfeat_import_error", lambda: "ModuleNotFoundError: No module named 'torch'")
+    def learned_problems(on):
+        return [p for p in inputs.check_inputs({"register": {"learned": {"enabled": on}}})
+                if "learned" in p]  # the empty config's other problems (no map) aside
+
+    (problem,) = learned_problems(True)
+    assert "register.learned.enabled" in problem and "requirements-learned.txt" in problem
+    assert "torch" in problem
+    assert learned_problems("auto") == [] and learned_problems(False) == []
+
+
 def test_registration_record_says_when_learned_did_not_run(monkeypatch):
     """``fuse.run_sources`` keeps the learned source's record in ``split`` whether or not it ran,
     so a result tells whether it depended on the extra being installed."""

@@ -25,6 +25,7 @@ from georeg.io.raster import open_raster
 from georeg.io.video import frame_images, jpeg_cut_short
 from georeg.map import pdal_points
 from georeg.register.band import parse_band_spec, resolve_band
+from georeg.register.rift import xfeat_import_error
 
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".webm"}
 
@@ -161,6 +162,12 @@ class _Checker:
         if b is None or b[0] > box[2] or b[2] < box[0] or b[1] > box[3] or b[3] < box[1]:
             self.add(f"{key}.prior: {b} does not overlap the map ({box}, {crs[:40]}...)")
 
+    def learned(self, learned: Mapping[str, Any]) -> None:
+        """``register.learned.enabled: true`` needs XFeat (``requirements-learned.txt``)."""
+        if learned.get("enabled") is True and (why := xfeat_import_error()):
+            self.add(f"register.learned.enabled: true, but XFeat does not import ({why}): "
+                     "pip install -r requirements-learned.txt, or set auto or false")
+
     def frames(self, frames: Mapping[str, Any]) -> None:
         from PIL import Image, UnidentifiedImageError
 
@@ -221,4 +228,5 @@ def check_inputs(config: Mapping[str, Any], generated: str | None = "results") -
     c.map(config.get("map") or {}, (config.get("map_prep") or {}).get("outlier"))
     c.queries(config.get("queries") or {})
     c.frames(config.get("frames") or {})
+    c.learned((config.get("register") or {}).get("learned") or {})
     return c.problems
