@@ -906,7 +906,8 @@ def main(argv: list[str] | None = None) -> int:
                    "null_nfa": res.get("null_nfa"), "null_accepted": res.get("null_accepted"),
                    "global_fit_reason": res.get("global_fit_reason"),
                    "ortho": res.get("ortho"), "ortho_gain": res.get("ortho_gain"), "rift": res.get("rift"),
-                   "null_check": res.get("null_check")}  # fmt: skip
+                   "null_check": res.get("null_check"), "pose_source": res.get("pose_source"),
+                   "learned": res.get("learned")}  # fmt: skip
             rows[name].append(rec)
             if a.v:
                 e = ("-" if j["error_px"] is None
@@ -924,8 +925,9 @@ def main(argv: list[str] | None = None) -> int:
                       + ("" if res.get("null_check") is None
                          else f" null check {res['null_check']}")
                       + ("" if res.get("ortho") is None
-                         else f" ortho {res['ortho']}"
-), flush=True)  # fmt: skip
+                         else f" ortho {res['ortho']}")
+                      + ("" if not res.get("pose_source") else f" by {res['pose_source']}"),
+                      flush=True)  # fmt: skip
     print(f"\n{len(queries)} queries and unrelated pairs, seed {a.seed}; halves by city: "
           f"tuning {', '.join(TUNING)}; checking {', '.join(CHECKING)}")  # fmt: skip
     print("| method | half | registered | false accepts | unrelated accepted | median err px "

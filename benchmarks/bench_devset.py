@@ -366,19 +366,21 @@ def _read_puc(year: int) -> np.ndarray:
         return s.read().astype(np.float32)  # SWIR1, NIR, red, green; 0 = nodata
 
 
-def build_pucallpa(seed: int, unrelated: bool = True, first: int = 0,
-                   crops: int = 2) -> tuple[list[bx.Scene], list[bx.Query]]:  # fmt: skip
+def build_pucallpa(seed: int, unrelated: bool = True, first: int = 0, crops: int = 2,
+                   query: str = "swir") -> tuple[list[bx.Scene], list[bx.Query]]:  # fmt: skip
     """Pucallpa queries; ``first``: skip the first date pairs (their queries are drawn all the
     same, so a query keeps its content whatever is skipped); ``crops`` 1: the half-side crop
-    only."""
+    only; ``query`` "visible": the query date's red/green instead of its SWIR1 (a control: the
+    same crops and dates, cross-date only, not cross-spectral)."""
     scenes, queries = [], []
     cube = {y: _read_puc(y) for y in PUC_DATES}
     rng = np.random.default_rng(seed)
     for kp, (qd, md, half) in enumerate(pucallpa_date_pairs()):
-        swir = np.where(cube[qd][0] > 0, cube[qd][0], np.nan)
+        qband = cube[qd][0] if query == "swir" else 0.5 * (cube[qd][2] + cube[qd][3])
+        swir = np.where(qband > 0, qband, np.nan)
         valid = (cube[md][2] > 0) & (cube[md][3] > 0)
         gray = bx._stretch(0.5 * (cube[md][2] + cube[md][3]), valid)
-        sc = bx.Scene(f"puc_{qd}_on_{md}", {"1.6um": swir}, 90.0, gray, 90.0, lambda p: p,
+        sc = bx.Scene(f"puc_{qd}_on_{md}", {"1.6um" if query == "swir" else "rg": swir}, 90.0, gray, 90.0, lambda p: p,
                       "pucallpa")  # fmt: skip
         scenes.append(sc)
         for k, frac in enumerate((0.5, float(rng.uniform(0.3, 0.45)))):
@@ -539,6 +541,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="srif_wide: one mosaic per half of every chosen modality's references")
     ap.add_argument("--puc-first", type=int, default=0, help="Pucallpa: skip the first date pairs")
     ap.add_argument("--puc-crops", type=int, default=2, help="Pucallpa: crops per date pair")
+    ap.add_argument("--puc-query", choices=("swir", "visible"), default="swir",
+                    help="Pucallpa: the query date's SWIR1 (the set) or its red/green (a control)")
     ap.add_argument("--reuse", default="",
                     help="a .jsonl of an earlier run (same set): its records of the methods "
                     "asked are taken, not run again (a run cut by the machine's load)")
@@ -567,7 +571,7 @@ def main(argv: list[str] | None = None) -> int:
         scenes += s
         queries += q
     if "pucallpa" in sets:
-        s, q = build_pucallpa(a.seed, True, a.puc_first, a.puc_crops)
+        s, q = build_pucallpa(a.seed, True, a.puc_first, a.puc_crops, a.puc_query)
         scenes += s
         queries += q
     order = {"wide": 0, "pucallpa": 1, "pair": 2}  # a cut run keeps the targets first
