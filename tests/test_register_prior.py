@@ -197,3 +197,50 @@ def test_sources_skipped_for_a_refused_candidate_run_in_a_second_pass(monkeypatc
     seen.clear()
     fused, rec = fuse.decide(q, MapView(None), [{**parts0[0], "good": True}], {})  # type: ignore[arg-type]
     assert fused["status"] == "registered" and rec["second_pass"] is None and seen == []
+
+
+def test_second_pass_candidate_at_another_place_than_the_refused_one_is_refused(monkeypatch):
+    """fuse.decide: the second pass's candidate must lie where a refused candidate lay (both
+    passed their own a-contrario test; Landsat Pucallpa red/green 2015 on 2005, crop 1: rift's
+    look-alike meander 186 px from the vetoed feature pose); at the same place it is kept."""
+    from georeg.register import fuse
+    from georeg.register.search import MapView, QueryInput
+
+    def shift(dx):
+        return [[1.0, 0.0, 1000.0 + dx], [0.0, -1.0, 5000.0], [0.0, 0.0, 1.0]]
+
+    def late_at(dx):
+        def late(q, view, parts, conf):
+            return [*parts, {"part": len(parts), "accepted": True, "candidates_tried": 3, "good": True,
+                             "homography": shift(dx)}], {"ran": True, "candidates": 3}  # fmt: skip
+        return late
+
+    def whole(q, view, parts, conf):
+        return parts, {"ran": False, "plan": {"parts": 1}}
+
+    def off(q, view, parts, conf):
+        return parts, {"ran": False, "reason": "not for this query"}
+
+    def fake_fuse(full, source, parts, conf, gsd, seed):
+        ok = [p for p in parts if p.get("accepted")]
+        good = bool(ok) and all(p.get("good") for p in ok)
+        return {"status": "registered" if good else "not_found",
+                "reason": None if good else "moved poses nearly as good"}  # fmt: skip
+
+    monkeypatch.setattr(fuse, "fuse", fake_fuse)
+    monkeypatch.setattr(fuse.small, "null_check", lambda u8, fused, *a: (fused, None))
+    monkeypatch.setattr(fuse.ortho_check, "apply", lambda u8, fused, *a: (fused, None))
+    monkeypatch.setattr(fuse.lidar_check, "run_check", lambda *a: None)
+    q = QueryInput(np.zeros((100, 100), np.uint8), None, 1.0, [1.0])  # type: ignore[arg-type]
+    parts0 = [{"part": 0, "accepted": True, "candidates_tried": 9, "homography": shift(0.0)}]
+    for dx, registered in ((120.0, False), (-120.0, False), (30.0, True), (0.0, True)):
+        monkeypatch.setattr(fuse, "SOURCES", (("whole_query", whole), ("small_windows", off),
+                                              ("cfog_null", off), ("rift", late_at(dx))))  # fmt: skip
+        fused, rec = fuse.decide(q, MapView(None), parts0, {})  # type: ignore[arg-type]
+        assert (fused["status"] == "registered") is registered, dx
+        far = rec["second_pass"].get("elsewhere")
+        assert (far is None) is registered
+        if far:
+            assert far["distance_m"] == abs(dx) and far["side_m"] == 100.0
+            assert "ambiguous" in fused["reason"] and not rec["parts"][-1]["accepted"]
+

@@ -302,6 +302,43 @@ SOURCES: tuple[tuple[str, Source], ...] = (
 #: pass when the verifier refuses that candidate)
 SKIPPED = "a search was accepted"
 
+#: a second-pass candidate whose footprint centre lies farther than this fraction of its
+#: footprint's side from every refused candidate's is at another place: two candidates that each
+#: passed their own a-contrario test disagree about where the query is, and neither is kept
+ELSEWHERE_SIDE = 0.5
+
+
+def elsewhere(refused: list[dict[str, Any]], new: list[dict[str, Any]],
+              shape: tuple[int, int]) -> dict[str, Any] | None:  # fmt: skip
+    """None when a candidate of ``new`` (the second pass's accepted parts) lies at the place of
+    a ``refused`` one (the first pass's, refused by the verifier), or when either has no pose;
+    else the nearest distance (map units), the new footprint's side and the reason."""
+    h, w = shape
+    centre = np.array([[w / 2, h / 2]])
+    box = np.array([[0, 0], [w, 0], [w, h], [0, h]], float)
+    best: dict[str, Any] | None = None
+    for n in new:
+        if n.get("homography") is None:
+            return None
+        Hn = np.array(n["homography"], float)
+        c = matching.apply_h(Hn, box)
+        side = float(np.sqrt(0.5 * abs(np.cross(c[2] - c[0], c[3] - c[1]))))
+        cn = matching.apply_h(Hn, centre)[0]
+        for r in refused:
+            if r.get("homography") is None:
+                return None
+            d = float(np.linalg.norm(matching.apply_h(np.array(r["homography"], float), centre)[0] - cn))
+            if d <= ELSEWHERE_SIDE * side:
+                return None
+            if best is None or d < best["distance_m"]:
+                best = {"distance_m": round(d, 2), "side_m": round(side, 2)}
+    if best is None:
+        return None
+    best["reason"] = (f"the second pass's candidate lies {best['distance_m']:.0f} map units from the "
+                      f"refused one (footprint side {best['side_m']:.0f}): two candidates at "
+                      "different places, the query's place is ambiguous")  # fmt: skip
+    return best
+
 
 def run_sources(
     q: QueryInput,
@@ -368,7 +405,10 @@ def decide(
     candidates are marked refused (``refused``: the reason) and the skipped sources run in a
     second pass, counting every test of the first, and their candidate is verified the same way
     (SRIF optical-optical 7 on a 40-reference mosaic: part 0's pose did not hold over the whole
-    query, and rift had not run). Returns the fused result and the record: ``split``, ``parts``,
+    query, and rift had not run). A second-pass candidate at another place than every refused
+    one (``elsewhere``) is refused too: the refused candidate passed its own a-contrario test
+    (Landsat Pucallpa, red/green 2015 on 2005: the feature pose 8 px from the truth, vetoed by the
+    orthophoto check; rift then found a look-alike meander 186 px away). Returns the fused result and the record: ``split``, ``parts``,
     ``sources``, the terms' records (None when not run), ``timings_s`` and ``second_pass``."""
     parts, split, ran, timings = run_sources(q, view, parts, conf)
     recs = split.pop("sources_by_name")
@@ -382,7 +422,14 @@ def decide(
     parts, split, ran, t2 = run_sources(q, view, parts, conf, (recs, ran))
     split.pop("sources_by_name")
     timings.update(t2)
-    second = {"refused": why, "sources": skipped}
+    second: dict[str, Any] = {"refused": why, "sources": skipped}
+    far = elsewhere([p for p in parts if p.get("refused")], [p for p in parts if p.get("accepted")],
+                    q.u8.shape[-2:])  # fmt: skip
+    if far is not None:
+        log.info("not registered: %s", far["reason"])
+        second["elsewhere"] = far
+        parts = [{**p, "accepted": False, "refused": far["reason"]} if p.get("accepted") else p for p in parts]
+        fused = {**fused, "reason": far["reason"]}
     if not any(p.get("accepted") for p in parts):
         return fused, {**rec, "split": split, "parts": parts, "sources": ran, "second_pass": second}
     fused, rec = check_fused(q, view, parts, conf, split, dsm, timings)
