@@ -261,6 +261,33 @@ def _pucallpa(name: str):
     return q, next(s for s in scenes if s.name == q.map_scene)
 
 
+def test_pucallpa_second_pass_keeps_to_the_refused_candidates_place(shared_data):
+    """Through the workflow's register path (bench_devset ``wf_rift``), the Pucallpa visible
+    control (the query date's red/green, not its SWIR): 2015 on 2005, crop 1, the feature pose
+    (8 px from the truth) is vetoed by the orthophoto check and rift then finds a look-alike
+    meander 186 px away: refused, as at another place (``fuse.elsewhere``). Crop 0: the second
+    pass's pose lies where the refused one did and registers."""
+    if not (shared_data / "swir_dates" / "landsat_pucallpa" / "2015.tif").exists():
+        pytest.skip("Landsat Pucallpa absent")
+    import sys
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_crossspectral as bx
+    import bench_devset as bd
+
+    scenes, queries = bd.build_pucallpa(11, unrelated=False, query="visible")
+    for name, registered in (("puc_2015_on_2005_1_rg", False), ("puc_2015_on_2005_0_rg", True)):
+        q = next(x for x in queries if x.name == name)
+        sc = next(s for s in scenes if s.name == q.map_scene)
+        res = bx.run_method(q, sc, bd.METHODS["wf_rift"], bx.query_seed(11, q.name))
+        assert res["second_pass"], name
+        assert res["accepted"] is registered, (name, res["second_pass"])
+        if registered:
+            assert bx.judge(q, sc, res)["error_px"] <= 5.0
+        else:
+            assert res["second_pass"]["elsewhere"]["distance_m"] > 100 * 90.0
+
+
 def test_pucallpa_blanked_map_rejected_by_the_measured_null(shared_data):
     """Landsat Pucallpa (bench_devset, tuning half): the 2005 SWIR crop on the 1990 map with the
     crop's place blanked passes the uniform NFA (log10 -2.5 < -2) but not the null measured on
