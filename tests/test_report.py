@@ -471,3 +471,6 @@ def test_sources_text_names_each_source_and_why_rift_decided_nothing() -> None:
         "23 cells; second pass (small_windows, cfog_null, rift) after the verifier refused the "
         "first candidate: part 0's pose does not hold over the whole query"
     )
+    reg["second_pass"]["elsewhere"] = {"distance_m": 16800.0, "side_m": 13000.0,
+                                       "reason": "the second pass's candidate lies 16800 map units away"}  # fmt: skip
+    assert sources_text(reg).endswith("whole query; not kept: the second pass's candidate lies 16800 map units away")

@@ -340,6 +340,8 @@ def sources_text(reg: Mapping[str, Any]) -> str | None:
     if sp:  # the verifier refused the first pass's candidate: the skipped sources ran after it
         out.append(f"second pass ({', '.join(sp.get('sources') or [])}) after the verifier "
                    f"refused the first candidate: {sp.get('refused')}")  # fmt: skip
+        if sp.get("elsewhere"):  # its candidate lay at another place: refused too
+            out.append(f"not kept: {sp['elsewhere'].get('reason')}")
     return "; ".join(out)
 
 
