@@ -154,19 +154,10 @@ def test_sources_run_in_order_only_while_nothing_is_accepted(monkeypatch):
     assert calls == [] and [r["name"] for r in ran] == ["features"]
 
 
-def test_sources_skipped_for_a_refused_candidate_run_in_a_second_pass(monkeypatch):
-    """fuse.decide: the feature search's accepted part is refused by the fusion (a pose that does
-    not hold over the whole query, SRIF optical-optical 7); the sources skipped because of it run
-    after it, counting its tests, and their candidate is fused and judged as any other."""
+def _stub_second_pass(monkeypatch, late) -> None:
+    """fuse.decide's collaborators stubbed: the whole-query plan, the small-query sources off,
+    ``late`` as rift; the fusion registers when every accepted part is ``good``; the terms pass."""
     from georeg.register import fuse
-    from georeg.register.search import MapView, QueryInput
-
-    seen = []
-
-    def late(q, view, parts, conf):
-        seen.append(q.tests_before)
-        return [*parts, {"part": len(parts), "accepted": True, "candidates_tried": 3, "good": True}], {
-            "ran": True, "candidates": 3}  # fmt: skip
 
     def whole(q, view, parts, conf):
         return parts, {"ran": False, "plan": {"parts": 1}}
@@ -186,6 +177,23 @@ def test_sources_skipped_for_a_refused_candidate_run_in_a_second_pass(monkeypatc
     monkeypatch.setattr(fuse.small, "null_check", lambda u8, fused, *a: (fused, None))
     monkeypatch.setattr(fuse.ortho_check, "apply", lambda u8, fused, *a: (fused, None))
     monkeypatch.setattr(fuse.lidar_check, "run_check", lambda *a: None)
+
+
+def test_sources_skipped_for_a_refused_candidate_run_in_a_second_pass(monkeypatch):
+    """fuse.decide: the feature search's accepted part is refused by the fusion (a pose that does
+    not hold over the whole query, SRIF optical-optical 7); the sources skipped because of it run
+    after it, counting its tests, and their candidate is fused and judged as any other."""
+    from georeg.register import fuse
+    from georeg.register.search import MapView, QueryInput
+
+    seen = []
+
+    def late(q, view, parts, conf):
+        seen.append(q.tests_before)
+        return [*parts, {"part": len(parts), "accepted": True, "candidates_tried": 3, "good": True}], {
+            "ran": True, "candidates": 3}  # fmt: skip
+
+    _stub_second_pass(monkeypatch, late)
     q = QueryInput(np.zeros((8, 8), np.uint8), None, 1.0, [1.0])  # type: ignore[arg-type]
     parts0 = [{"part": 0, "accepted": True, "candidates_tried": 9}]
     fused, rec = fuse.decide(q, MapView(None), parts0, {})  # type: ignore[arg-type]
@@ -215,27 +223,10 @@ def test_second_pass_candidate_at_another_place_than_the_refused_one_is_refused(
                              "homography": shift(dx)}], {"ran": True, "candidates": 3}  # fmt: skip
         return late
 
-    def whole(q, view, parts, conf):
-        return parts, {"ran": False, "plan": {"parts": 1}}
-
-    def off(q, view, parts, conf):
-        return parts, {"ran": False, "reason": "not for this query"}
-
-    def fake_fuse(full, source, parts, conf, gsd, seed):
-        ok = [p for p in parts if p.get("accepted")]
-        good = bool(ok) and all(p.get("good") for p in ok)
-        return {"status": "registered" if good else "not_found",
-                "reason": None if good else "moved poses nearly as good"}  # fmt: skip
-
-    monkeypatch.setattr(fuse, "fuse", fake_fuse)
-    monkeypatch.setattr(fuse.small, "null_check", lambda u8, fused, *a: (fused, None))
-    monkeypatch.setattr(fuse.ortho_check, "apply", lambda u8, fused, *a: (fused, None))
-    monkeypatch.setattr(fuse.lidar_check, "run_check", lambda *a: None)
     q = QueryInput(np.zeros((100, 100), np.uint8), None, 1.0, [1.0])  # type: ignore[arg-type]
     parts0 = [{"part": 0, "accepted": True, "candidates_tried": 9, "homography": shift(0.0)}]
     for dx, registered in ((120.0, False), (-120.0, False), (30.0, True), (0.0, True)):
-        monkeypatch.setattr(fuse, "SOURCES", (("whole_query", whole), ("small_windows", off),
-                                              ("cfog_null", off), ("rift", late_at(dx))))  # fmt: skip
+        _stub_second_pass(monkeypatch, late_at(dx))
         fused, rec = fuse.decide(q, MapView(None), parts0, {})  # type: ignore[arg-type]
         assert (fused["status"] == "registered") is registered, dx
         far = rec["second_pass"].get("elsewhere")
