@@ -1,6 +1,7 @@
 """Diagnostic: does a rift pose hold beyond the query's dominant structure?
 
     python benchmarks/diag_support_beyond.py benchmarks/out/s28/puc13_visible.jsonl 13 visible
+    python benchmarks/diag_support_beyond.py benchmarks/out/s27/wide_oi_tuning.jsonl srif oi wide
 
 For each pose accepted by rift in a Pucallpa run's records: the doubled-angle gradient-orientation
 correlation (contrast-sign free) of the query with the map warped by the pose, as a z-score
@@ -66,19 +67,24 @@ def z_score(zq: np.ndarray, mp: np.ndarray, H: np.ndarray, n: int, mask: np.ndar
 
 
 def main() -> int:
-    records, seed, kind = sys.argv[1], int(sys.argv[2]), sys.argv[3]
-    scenes, queries = bd.build_pucallpa(seed, True, query=kind)
+    records = sys.argv[1]
+    if sys.argv[2] == "srif":  # srif MODS wide|pair: the SRIF sets of bench_devset
+        scenes, queries = bd.build_srif(sys.argv[3].split(","), sys.argv[4] == "wide", sys.argv[4] == "pair")
+    else:  # SEED swir|visible: Landsat Pucallpa
+        scenes, queries = bd.build_pucallpa(int(sys.argv[2]), True, query=sys.argv[3])
     scene = {s.name: s for s in scenes}
     query = {q.name: q for q in queries}
     rng = np.random.default_rng(0)
     for line in open(records):
         r = json.loads(line)
-        if r.get("pose_source") != "rift" or r["query"] not in query:
+        if r.get("pose_source") not in ("rift", "learned") or r["query"] not in query:
             continue
         q = query[r["query"]]
         sc = scene[q.map_scene]
         u8 = next(iter(q.bands.values()))
         n = u8.shape[0]
+        if u8.shape[1] != n:
+            continue  # square queries only
         H = np.diag([1 / sc.map_gsd, -1 / sc.map_gsd, 1.0]) @ np.array(r["H"])
         zq, wq = orientation(u8)
         valid = u8 > 0
