@@ -377,11 +377,11 @@ def build_pucallpa(seed: int, unrelated: bool = True, first: int = 0, crops: int
     rng = np.random.default_rng(seed)
     for kp, (qd, md, half) in enumerate(pucallpa_date_pairs()):
         qband = cube[qd][0] if query == "swir" else 0.5 * (cube[qd][2] + cube[qd][3])
-        swir = np.where(qband > 0, qband, np.nan)
+        qimg = np.where(qband > 0, qband, np.nan)
         valid = (cube[md][2] > 0) & (cube[md][3] > 0)
         gray = bx._stretch(0.5 * (cube[md][2] + cube[md][3]), valid)
-        sc = bx.Scene(f"puc_{qd}_on_{md}", {"1.6um" if query == "swir" else "rg": swir}, 90.0, gray, 90.0, lambda p: p,
-                      "pucallpa")  # fmt: skip
+        bands = {"1.6um" if query == "swir" else "rg": qimg}
+        sc = bx.Scene(f"puc_{qd}_on_{md}", bands, 90.0, gray, 90.0, lambda p: p, "pucallpa")
         scenes.append(sc)
         for k, frac in enumerate((0.5, float(rng.uniform(0.3, 0.45)))):
             q = bx.make_query(sc, rng, k, frac)

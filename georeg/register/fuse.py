@@ -323,11 +323,10 @@ def elsewhere(refused: list[dict[str, Any]], new: list[dict[str, Any]],
         Hn = np.array(n["homography"], float)
         c = matching.apply_h(Hn, box)
         side = float(np.sqrt(0.5 * abs(np.cross(c[2] - c[0], c[3] - c[1]))))
-        cn = matching.apply_h(Hn, centre)[0]
         for r in refused:
             if r.get("homography") is None:
                 return None
-            d = float(np.linalg.norm(matching.apply_h(np.array(r["homography"], float), centre)[0] - cn))
+            d = disagreement_m(np.array(r["homography"], float), Hn, centre)["median"]
             if d <= ELSEWHERE_SIDE * side:
                 return None
             if best is None or d < best["distance_m"]:

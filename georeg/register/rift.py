@@ -27,6 +27,7 @@ import numpy as np
 import scipy.fft as sfft
 
 from georeg.io.errors import ConfigError
+from georeg.register.matching import apply_h
 
 DEFAULTS: dict[str, Any] = {
     "kind": "rift",  # the features: rift (phase congruency, below) | xfeat (``LEARNED``)
@@ -692,8 +693,6 @@ def reangle(H: np.ndarray, query_u8: np.ndarray, scale: float, mxy: np.ndarray, 
     narrowing tolerance (16, 8, 6, 3 px).
     Taken when more of those matches lie within ``reproj_px`` of it than of the pose; the
     decision stands. Returns the pose and the record."""
-    from georeg.register.matching import apply_h
-
     psi = math.degrees(math.atan2(H[1, 0], H[0, 0]))
     img, A = _rotated(query_u8, scale, -psi)
     qxy, qd = features(img, c)
