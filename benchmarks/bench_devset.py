@@ -464,10 +464,14 @@ def run_rift(q: bx.Query, sc: bx.Scene, spec: dict[str, Any], seed: int) -> dict
     if r["accepted"] and conf["polish"]:  # as rift.source does with the orthophoto's window
         H, pol = rift.polish(u8, H, bx.plain_window_reader(sc), reg)
         r["accepted"] = not (pol and pol["moved_better"])
+    st = None
+    if r["accepted"] and float(conf["structure_z_min"]) > 0:  # as rift.source does
+        st = rift.structure_check(u8, H, bx.plain_window_reader(sc), q.gsd, conf, seed)
+        r["accepted"] = st is None or st["z"] >= float(conf["structure_z_min"])
     return {"matches": r["matches"], "inliers": r["inliers"], "accepted": r["accepted"], "H": H,
             "log10_nfa": r["log10_nfa"], "tests": r["tests"], "candidates": r["tests"],
             "angle_deg": r["angle_deg"], "map_cpu_seconds": map_s,
-            "null_log10_nfa": r["null_log10_nfa"], "polish": pol,
+            "null_log10_nfa": r["null_log10_nfa"], "polish": pol, "structure": st,
             "per_rotation": r["per_rotation"], "seconds": time.perf_counter() - t0,
             "confirm": r.get("confirm"), "rescue": r.get("rescue"),
             **{k: (r["decision"] or {}).get(k) for k in ("nfa_k", "nfa_eps_px", "reason")}}  # fmt: skip
@@ -477,7 +481,8 @@ def _rift_fields(res: dict[str, Any]) -> dict[str, Any]:
     """The rift source's null, polish, per-rotation NFAs, NFA's k and e_k, confirmation, rescue
     and reason (source alone, or the workflow's registration record)."""
     r = res if "per_rotation" in res else (res.get("rift") or {})
-    keys = ("null_log10_nfa", "polish", "per_rotation", "nfa_k", "nfa_eps_px", "confirm", "rescue", "reason")
+    keys = ("null_log10_nfa", "polish", "structure", "per_rotation", "nfa_k", "nfa_eps_px", "confirm",
+            "rescue", "reason")  # fmt: skip
     return {k: r.get(k) for k in keys}
 
 

@@ -9,7 +9,7 @@ are in docs/experiments/2026-11-29-session28.md.
     python benchmarks/diag_lookalike.py beyond  RECORDS srif oi wide
 
 RECORDS: a ``bench_devset.py`` run's .jsonl of the same set (``pucallpa SEED swir|visible`` or
-``srif MODS wide|pair``).
+``srif MODS wide|pair [BLOCK]``, BLOCK the run's ``--block``: the mosaic's layout).
 
 * ``mirror``: the query flipped left-right (no rigid pose can truly match it) searched by rift on
   the same map, its acceptance off: its lowest log10 NFA and where its pose lies (footprint-centre
@@ -50,11 +50,14 @@ def register_conf() -> tuple[dict[str, Any], dict[str, Any]]:
     return cfg["acceptance"], {k: v for k, v in (cfg.get("rift") or {}).items() if k != "enabled"}
 
 
-def poses(records: str, spec: list[str]) -> Iterator[tuple[dict, Any, Any, np.ndarray, np.ndarray]]:
+def poses(records: str, spec: list[str], square_only: bool = True
+          ) -> Iterator[tuple[dict, Any, Any, np.ndarray, np.ndarray]]:  # fmt: skip
     """(record, query, map scene, query uint8, H query px -> map px) of every square query whose
     pose a map-wide source (rift, learned) accepted in ``records``."""
     if spec[0] == "srif":
-        scenes, queries = bd.build_srif(spec[1].split(","), spec[2] == "wide", spec[2] == "pair")
+        block = int(spec[3]) if len(spec) > 3 else bd.BLOCK  # the run's --block (mosaic layout)
+        scenes, queries = bd.build_srif(spec[1].split(","), spec[2] == "wide", spec[2] == "pair",
+                                        block=block)  # fmt: skip
     else:
         scenes, queries = bd.build_pucallpa(int(spec[1]), True, query=spec[2])
     scene = {s.name: s for s in scenes}
@@ -66,7 +69,7 @@ def poses(records: str, spec: list[str]) -> Iterator[tuple[dict, Any, Any, np.nd
         q = query[r["query"]]
         sc = scene[q.map_scene]
         u8 = next(iter(q.bands.values()))
-        if u8.shape[0] != u8.shape[1]:
+        if square_only and u8.shape[0] != u8.shape[1]:
             continue
         yield r, q, sc, u8, np.diag([1 / sc.map_gsd, -1 / sc.map_gsd, 1.0]) @ np.array(r["H"])
 
@@ -170,7 +173,16 @@ def beyond(r: dict, q: Any, sc: Any, u8: np.ndarray, H: np.ndarray) -> str:
     return f"z all {z_all:6.2f} z without the strongest 15 % {z_rest:6.2f}"
 
 
-PROBES = {"mirror": mirror, "cells": cells, "beyond": beyond}
+def structure(r: dict, q: Any, sc: Any, u8: np.ndarray, H: np.ndarray) -> str:
+    """``georeg.register.rift.structure_check`` at the pose, as the workflow's rift source runs
+    it (the map read through ``bench_crossspectral.plain_window_reader``)."""
+    g = sc.map_gsd
+    got = rift.structure_check(u8, np.diag([g, -g, 1.0]) @ H, bd.bx.plain_window_reader(sc), q.gsd,
+                               register_conf()[1])  # fmt: skip
+    return f"structure z {got['z'] if got else math.nan:6.2f}"
+
+
+PROBES = {"mirror": mirror, "cells": cells, "beyond": beyond, "structure": structure}
 
 
 def main() -> int:
@@ -178,7 +190,7 @@ def main() -> int:
         print(__doc__, file=sys.stderr)
         return 2
     probe = PROBES[sys.argv[1]]
-    for r, q, sc, u8, H in poses(sys.argv[2], sys.argv[3:]):
+    for r, q, sc, u8, H in poses(sys.argv[2], sys.argv[3:], probe is not structure):
         print(f"{r['query']:34s} {r['outcome']:12s} log10 NFA {r['log10_nfa']:7.2f} "
               f"{probe(r, q, sc, u8, H)}", flush=True)
     return 0

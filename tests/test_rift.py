@@ -266,7 +266,8 @@ def test_pucallpa_second_pass_keeps_to_the_refused_candidates_place(shared_data)
     control (the query date's red/green, not its SWIR): 2015 on 2005, crop 1, the feature pose
     (8 px from the truth) is vetoed by the orthophoto check and rift then finds a look-alike
     meander 186 px away: refused, as at another place (``fuse.elsewhere``). Crop 0: the second
-    pass's pose lies where the refused one did and registers."""
+    pass's pose lies where the refused one did and registers. (The structure check, off for
+    crop 1 here, refuses that look-alike too, at z 1.55: ``structure_z_min`` 1.6.)"""
     if not (shared_data / "swir_dates" / "landsat_pucallpa" / "2015.tif").exists():
         pytest.skip("Landsat Pucallpa absent")
     import sys
@@ -279,7 +280,10 @@ def test_pucallpa_second_pass_keeps_to_the_refused_candidates_place(shared_data)
     for name, registered in (("puc_2015_on_2005_1_rg", False), ("puc_2015_on_2005_0_rg", True)):
         q = next(x for x in queries if x.name == name)
         sc = next(s for s in scenes if s.name == q.map_scene)
-        res = bx.run_method(q, sc, bd.METHODS["wf_rift"], bx.query_seed(11, q.name))
+        spec = bd.METHODS["wf_rift"]
+        if not registered:
+            spec = {**spec, "pipeline": {**spec["pipeline"], "rift": {"enabled": True, "structure_z_min": 0}}}
+        res = bx.run_method(q, sc, spec, bx.query_seed(11, q.name))
         assert res["second_pass"], name
         assert res["accepted"] is registered, (name, res["second_pass"])
         if registered:
@@ -454,3 +458,43 @@ def test_map_matcher_kept_for_the_same_map():
     assert rift.map_matcher(md, c) is a
     assert rift.map_matcher(md.copy(), c) is not a
     assert rift.map_matcher(md, {**c, "nprobe": 8}) is not a
+
+
+def test_structure_check_scores_the_true_pose_not_a_moved_one():
+    """The phase-congruency structure of a rotated, contrast-inverted crop agrees with the map
+    at its true pose far beyond random poses nearby (z >> 3), at a pose moved by half the crop
+    not (|z| < 3); the map is read through the windowed reader at 2 map units per px."""
+    m = _scene(5, 480)
+    q, truth = _query(m, (240.0, 230.0), 37.0, 160)
+    to_map = np.diag([2.0, -2.0, 1.0])  # map px -> x, y
+    read = _box_reader(m, 2.0)
+    at = rift.structure_check(q, to_map @ truth, read, 2.0, {}, seed=0)
+    assert at is not None and at["z"] > 8.0, at
+    moved = to_map @ np.array([[1.0, 0, 80], [0, 1, -60], [0, 0, 1]]) @ truth
+    off = rift.structure_check(q, moved, read, 2.0, {}, seed=0)
+    assert off is not None and abs(off["z"]) < 3.0, off
+    assert rift.structure_check(q, to_map @ truth, read, 2.0, {}, seed=0) == at  # seeded
+
+
+def test_pucallpa_lookalike_meander_refused_by_the_structure_check(shared_data):
+    """Through the workflow's register path (bench_devset ``wf_rift``), the Pucallpa visible
+    control's second draw (seed 13, tuning half): the 1985 crop on the 1990 map with its place
+    blanked, where rift lays the query's river bend on another bend of the Ucayali (log10 NFA
+    -5.1, confirmed by 7 of 36 cells), is refused by the structure check; the same crop on the
+    whole map still registers within the benchmark's 5 px."""
+    if not (shared_data / "swir_dates" / "landsat_pucallpa" / "1990.tif").exists():
+        pytest.skip("Landsat Pucallpa absent")
+    import sys
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_crossspectral as bx
+    import bench_devset as bd
+
+    scenes, queries = bd.build_pucallpa(13, unrelated=True, query="visible")
+    for name, registered in (("puc_1985_on_1990_0_rg_blanked", False), ("puc_2020_on_1990_0_rg", True)):
+        q = next(x for x in queries if x.name == name)
+        sc = next(s for s in scenes if s.name == q.map_scene)
+        res = bx.run_method(q, sc, bd.METHODS["wf_rift"], bx.query_seed(13, q.name))
+        assert res["accepted"] is registered, name
+        if registered:
+            assert bx.judge(q, sc, res)["error_px"] <= 5.0

@@ -72,6 +72,8 @@ DEFAULTS: dict[str, Any] = {
     # null + 2 for its own noise (chance poses' NFAs moved by up to 2.1 decades between the
     # source alone and the workflow's windows, Pucallpa tuning half; true poses' by 0.3)
     "polish": True,  # an accepted pose refit densely to the orthophoto (``polish``)
+    "structure_z_min": 1.6,  # an accepted pose's structure agreement with the orthophoto, z
+    # against random poses nearby (``structure_check``), must reach this; 0 = off
     "reangle": False,  # an accepted pose's features computed again at its own rotation (``reangle``)
     "map_window_px": 1024,  # map features by windows of this side (each with its own max_kp)
     "exact_max": 2e6,  # query x map descriptor products above which the search is approximate
@@ -97,6 +99,11 @@ LEARNED: dict[str, Any] = {"kind": "xfeat", "rotations": 12, "max_angle_deg": 16
                            "reangle": True}
 #: XFeat keeps keypoints at least this far (px) from nodata (the fill's edge is a strong corner)
 XFEAT_EDGE_PX = 8
+
+
+STRUCTURE_DRAWS = 150  # random poses of the structure check's null
+STRUCTURE_SIDE = 256  # px: larger queries are checked shrunk to this long side
+STRUCTURE_REACH = 1.5  # the null's window: the footprint grown by this many of its sides each way
 
 
 def xfeat_import_error() -> str | None:
@@ -191,7 +198,7 @@ def _filters(shape: tuple[int, int], c: dict[str, Any]) -> tuple[np.ndarray, np.
     return radial, spread
 
 
-def phase_maps(img: np.ndarray, valid: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+def phase_maps(img: np.ndarray, valid: np.ndarray, conf: dict[str, Any], orientation: bool = False) -> tuple:
     """Phase congruency maximum moment map (h, w) and maximum index map (h, w, uint8 0..norient-1).
 
     ``img`` float or uint8, ``valid`` bool: nodata is filled with the valid mean before the FFT
@@ -252,6 +259,8 @@ def phase_maps(img: np.ndarray, valid: np.ndarray, conf: dict[str, Any]) -> tupl
     cov /= no / 2
     denom = np.sqrt(4 * cov[2] ** 2 + (cov[0] - cov[1]) ** 2) + eps
     moment = (cov[0] + cov[1] + denom) / 2
+    if orientation:  # doubled-angle principal axis of phase congruency, weighted by its strength
+        return moment, mim, (cov[0] - cov[1]) + 2j * cov[2]
     return moment, mim
 
 
@@ -853,14 +862,127 @@ def polish(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, 
     return (H if out["moved_better"] else use), out
 
 
+def window_at(gray: np.ndarray, A: np.ndarray, g: float) -> tuple[np.ndarray, np.ndarray]:
+    """An orthophoto window (float, NaN = nodata; ``A`` its 3 x 3 pixel centre -> map) as uint8
+    (0 = nodata) shrunk to ``g`` map units per pixel when finer, and its new ``A``. One affine
+    map of the values to 1..255 (the window's own min and max): phase congruency is invariant
+    to it, a percentile clip is not (the workflow lost 3 of 50 SRIF oi poses the source alone
+    finds on the same 8-bit mosaic, one inlier each)."""
+    from georeg.register.dense import _shrink, window_u8
+
+    m_px = float(np.sqrt(abs(np.linalg.det(A[:2, :2]))))
+    v = gray[np.isfinite(gray)]
+    u8 = window_u8(gray, (float(v.min()), float(v.max())) if v.size else None)
+    f = min(1.0, m_px / g)
+    if f < 1.0:
+        shrunk, ok = _shrink(u8, u8 > 0, f)
+        u8 = np.where(ok, np.maximum(np.round(shrunk), 1), 0).astype(np.uint8)
+        A = A @ np.array([[1 / f, 0, 0.5 / f - 0.5], [0, 1 / f, 0.5 / f - 0.5], [0, 0, 1.0]])
+    return u8, A
+
+
+def read_tiled(read_window: Any, bounds: tuple[float, float, float, float], g: float,
+               tile_px: int = 2048) -> tuple[np.ndarray, np.ndarray] | None:  # fmt: skip
+    """The orthophoto in ``bounds`` as uint8 (0 = nodata) at ``g`` map units per pixel (the
+    orthophoto's own when coarser), read by tiles of ``tile_px`` orthophoto px a side (memory one
+    tile) and each shrunk (``window_at``); and its 3 x 3 pixel centre -> map. None: not read."""
+    x0, y0, x1, y1 = bounds
+    cx, cy, r = (x0 + x1) / 2, (y0 + y1) / 2, min(x1 - x0, y1 - y0) / 6
+    probe = read_window((cx - r, cy - r, cx + r, cy + r))  # the orthophoto's pixel size
+    if probe is None:
+        return None
+    px = float(np.hypot(probe[1][0, 0], probe[1][1, 0]))
+    g = max(g, px)
+    W, Hh = max(1, math.ceil((x1 - x0) / g)), max(1, math.ceil((y1 - y0) / g))
+    G = np.array([[g, 0, x0 + g / 2], [0, -g, y1 - g / 2], [0, 0, 1.0]])
+    out = np.zeros((Hh, W), np.uint8)
+    step = tile_px * px
+    for ty in np.arange(y0, y1, step):
+        for tx in np.arange(x0, x1, step):
+            got = read_window((tx, ty, min(tx + step, x1), min(ty + step, y1)))
+            if got is None:
+                continue
+            u8, A = window_at(np.asarray(got[0], np.float32), np.asarray(got[1], float), g)
+            T = (np.linalg.inv(G) @ A)[:2]  # tile px -> out px
+            cv2.warpAffine(u8, T, (W, Hh), dst=out, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_TRANSPARENT)
+    return out, G
+
+
+def _structure_field(u8: np.ndarray, c: dict[str, Any]) -> np.ndarray:
+    """Doubled-angle phase-congruency orientation (complex), its length the square root of the
+    structure's strength: contrast and modality free (RIFT's premise)."""
+    v = phase_maps(u8, u8 > 0, c, orientation=True)[2]
+    return np.where(u8 > 0, v / (np.sqrt(np.abs(v)) + 1e-6), 0).astype(np.complex64)
+
+
+def _structure_corr(fq: np.ndarray, win: np.ndarray, Hw: np.ndarray, c: dict[str, Any]) -> float:
+    """Correlation of the query's structure field ``fq`` with that of the window ``win`` (uint8,
+    0 = nodata) warped into the query's frame by ``Hw`` (query px -> window px); NaN when less
+    than a fifth of the query's valid pixels are covered."""
+    h, w = fq.shape
+    patch = cv2.warpPerspective(win, Hw, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+    ok = cv2.warpPerspective((win > 0).astype(np.uint8), Hw, (w, h), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP) > 0
+    patch[~ok] = 0
+    ok &= fq != 0
+    if ok.sum() < 0.2 * (fq != 0).sum():
+        return math.nan
+    a, b = fq[ok], _structure_field(patch, c)[ok]
+    return float(np.real(np.vdot(b, a)) / math.sqrt(float(np.vdot(a, a).real * np.vdot(b, b).real) + 1e-12))
+
+
+def structure_check(u8: np.ndarray, H: np.ndarray, read_window: Any, gsd_m: float,
+                    conf: dict[str, Any] | None, seed: int = 0) -> dict[str, Any] | None:  # fmt: skip
+    """How far the orthophoto's phase-congruency structure agrees with the query's at the pose
+    ``H`` (query px -> map), as a z-score against ``STRUCTURE_DRAWS`` random poses (any rotation,
+    the same scale, centred on any valid pixel of the window: the footprint grown by
+    ``STRUCTURE_REACH`` of its side each way), at the query's GSD (``gsd_m``; the query shrunk to ``STRUCTURE_SIDE`` px when larger).
+    A look-alike (the query's river bend laid on another bend of the same river) agrees only on
+    the structure its matches were found on; a true pose, across dates and modalities, on much
+    more. None: the window cannot be read or too few random poses fall on it."""
+    c = rift_conf(conf)
+    H = np.asarray(H, float)
+    k = min(1.0, STRUCTURE_SIDE / max(u8.shape))
+    if k < 1.0:
+        u8 = cv2.resize(u8, (max(1, round(u8.shape[1] * k)), max(1, round(u8.shape[0] * k))),
+                        interpolation=cv2.INTER_AREA)  # fmt: skip
+        H = H @ np.array([[1 / k, 0, 0.5 / k - 0.5], [0, 1 / k, 0.5 / k - 0.5], [0, 0, 1.0]])
+    h, w = u8.shape
+    corners = apply_h(H, np.array([[0, 0], [w, 0], [w, h], [0, h]], float))
+    lo, hi = corners.min(0), corners.max(0)
+    m = float((hi - lo).max()) * STRUCTURE_REACH
+    got = read_tiled(read_window, (lo[0] - m, lo[1] - m, hi[0] + m, hi[1] + m), gsd_m / k)
+    if got is None:
+        return None
+    win, A = got
+    fq = _structure_field(u8, c)
+    Hw = np.linalg.inv(A) @ H
+    at = _structure_corr(fq, win, Hw, c)
+    s = math.sqrt(abs(np.linalg.det(Hw[:2, :2])))
+    flip = np.diag([1.0, float(np.sign(np.linalg.det(Hw[:2, :2]))) or 1.0])
+    rng = np.random.default_rng(seed)
+    vr, vc = np.nonzero(win)  # random poses centred on the orthophoto's valid pixels
+    if not len(vr):
+        return None
+    null = []
+    for i in rng.integers(0, len(vr), STRUCTURE_DRAWS):
+        a = rng.uniform(0, 2 * math.pi)
+        R = s * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]]) @ flip
+        t = np.array([vc[i], vr[i]], float) - R @ np.array([(w - 1) / 2, (h - 1) / 2])
+        v = _structure_corr(fq, win, np.r_[np.c_[R, t], [[0, 0, 1.0]]], c)
+        if math.isfinite(v):
+            null.append(v)
+    if len(null) < STRUCTURE_DRAWS // 5 or not math.isfinite(at):
+        return None
+    z = (at - float(np.mean(null))) / (float(np.std(null)) + 1e-9)
+    return {"z": round(z, 2), "correlation": round(at, 4), "draws": len(null)}
+
+
 def read_map_features(read_window: Any, bounds: tuple[float, float, float, float], g: float,
                       conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, float, np.ndarray] | None:  # fmt: skip
     """Map features of the orthophoto in ``bounds`` at ``g`` map units per pixel, read by windows
     of ``map_window_px`` (each padded by a patch; keypoints kept in its core): keypoints in the
     working grid's px (origin the bounds' top left, north-up), descriptors, the valid area (px)
     and the 3 x 3 working px -> map x, y. Memory is bounded by one window. None: nothing read."""
-    from georeg.register.dense import _shrink, window_u8
-
     c = rift_conf(conf)
     G = np.array([[g, 0, bounds[0] + g / 2], [0, -g, bounds[3] - g / 2], [0, 0, 1.0]])
     W = int(math.ceil((bounds[2] - bounds[0]) / g))
@@ -874,18 +996,7 @@ def read_map_features(read_window: Any, bounds: tuple[float, float, float, float
             got = read_window(box)
             if got is None:
                 continue
-            gray, A = got
-            m_px = float(np.sqrt(abs(np.linalg.det(A[:2, :2]))))
-            # one affine map of the values to 1..255 (the window's own min and max): phase
-            # congruency is invariant to it, a percentile clip is not (the workflow lost 3 of 50
-            # SRIF oi poses the source alone finds on the same 8-bit mosaic, one inlier each)
-            v = gray[np.isfinite(gray)]
-            u8 = window_u8(gray, (float(v.min()), float(v.max())) if v.size else None)
-            f = min(1.0, m_px / g)  # the orthophoto shrunk to the working GSD when finer
-            if f < 1.0:
-                shrunk, ok = _shrink(u8, u8 > 0, f)
-                u8 = np.where(ok, np.maximum(np.round(shrunk), 1), 0).astype(np.uint8)
-                A = A @ np.array([[1 / f, 0, 0.5 / f - 0.5], [0, 1 / f, 0.5 / f - 0.5], [0, 0, 1.0]])
+            u8, A = window_at(*got, g)
             if not u8.any():
                 continue
             T = np.linalg.inv(G) @ A  # window px -> working px
@@ -1006,6 +1117,13 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
         if rec["polish"] and rec["polish"]["moved_better"]:
             r["accepted"] = rec["accepted"] = False
             rec["reason"] = "the orthophoto's tie points support a moved pose better (gain < 1)"
+    if r["accepted"] and H is not None and float(c["structure_z_min"]) > 0:
+        rec["structure"] = st = structure_check(u8, H, view.read_window, float(q.gsd), c, q.seed)
+        if st is not None and st["z"] < float(c["structure_z_min"]):
+            r["accepted"] = rec["accepted"] = False
+            rec["reason"] = (f"the orthophoto's structure agrees with the query's at the pose no "
+                             f"better than at random poses nearby (z {st['z']:.1f} < "
+                             f"{float(c['structure_z_min']):g}): a look-alike")  # fmt: skip
     if r["accepted"] and H is not None:
         part = {"accepted": True, "homography": H.tolist(), "log10_nfa": r["log10_nfa"],
                 "inliers": r["inliers"], "matches": r["matches"], "residual_px": None,
