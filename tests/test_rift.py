@@ -267,7 +267,7 @@ def test_pucallpa_second_pass_keeps_to_the_refused_candidates_place(shared_data)
     (8 px from the truth) is vetoed by the orthophoto check and rift then finds a look-alike
     meander 186 px away: refused, as at another place (``fuse.elsewhere``). Crop 0: the second
     pass's pose lies where the refused one did and registers. (The structure check, off for
-    crop 1 here, refuses that look-alike too, at z 1.55: ``structure_z_min`` 1.6.)"""
+    crop 1 here, refuses that look-alike too: z 1.55 < ``structure_z_min``.)"""
     if not (shared_data / "swir_dates" / "landsat_pucallpa" / "2015.tif").exists():
         pytest.skip("Landsat Pucallpa absent")
     import sys

@@ -72,7 +72,7 @@ DEFAULTS: dict[str, Any] = {
     # null + 2 for its own noise (chance poses' NFAs moved by up to 2.1 decades between the
     # source alone and the workflow's windows, Pucallpa tuning half; true poses' by 0.3)
     "polish": True,  # an accepted pose refit densely to the orthophoto (``polish``)
-    "structure_z_min": 1.6,  # an accepted pose's structure agreement with the orthophoto, z
+    "structure_z_min": 2.2,  # an accepted pose's structure agreement with the orthophoto, z
     # against random poses nearby (``structure_check``), must reach this; 0 = off
     "reangle": False,  # an accepted pose's features computed again at its own rotation (``reangle``)
     "map_window_px": 1024,  # map features by windows of this side (each with its own max_kp)
