@@ -466,7 +466,8 @@ def run_rift(q: bx.Query, sc: bx.Scene, spec: dict[str, Any], seed: int) -> dict
         r["accepted"] = not (pol and pol["moved_better"])
     st = None
     if r["accepted"] and float(conf["structure_z_min"]) > 0:  # as rift.source does
-        st = rift.structure_check(u8, H, bx.plain_window_reader(sc), q.gsd, conf, seed)
+        st = rift.structure_check(u8, H, bx.plain_window_reader(sc), q.gsd, conf, seed,
+                                  z_enough=2 * float(conf["structure_z_min"]))  # fmt: skip
         r["accepted"] = st is None or st["z"] >= float(conf["structure_z_min"])
     return {"matches": r["matches"], "inliers": r["inliers"], "accepted": r["accepted"], "H": H,
             "log10_nfa": r["log10_nfa"], "tests": r["tests"], "candidates": r["tests"],

@@ -474,6 +474,9 @@ def test_structure_check_scores_the_true_pose_not_a_moved_one():
     off = rift.structure_check(q, moved, read, 2.0, {}, seed=0)
     assert off is not None and abs(off["z"]) < 3.0, off
     assert rift.structure_check(q, to_map @ truth, read, 2.0, {}, seed=0) == at  # seeded
+    assert at["draws"] == rift.STRUCTURE_DRAWS
+    early = rift.structure_check(q, to_map @ truth, read, 2.0, {}, seed=0, z_enough=5.0)
+    assert early["draws"] == rift.STRUCTURE_ROUND and early["z"] >= 5.0  # far beyond doubt: one round
 
 
 def test_pucallpa_lookalike_meander_refused_by_the_structure_check(shared_data):

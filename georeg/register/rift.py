@@ -101,7 +101,8 @@ LEARNED: dict[str, Any] = {"kind": "xfeat", "rotations": 12, "max_angle_deg": 16
 XFEAT_EDGE_PX = 8
 
 
-STRUCTURE_DRAWS = 150  # random poses of the structure check's null
+STRUCTURE_DRAWS = 150  # random poses of the structure check's null ...
+STRUCTURE_ROUND = 30  # ... drawn in rounds of this many (``structure_check``'s early stop)
 STRUCTURE_SIDE = 256  # px: larger queries are checked shrunk to this long side
 STRUCTURE_REACH = 1.5  # the null's window: the footprint grown by this many of its sides each way
 
@@ -931,14 +932,17 @@ def _structure_corr(fq: np.ndarray, win: np.ndarray, Hw: np.ndarray, c: dict[str
 
 
 def structure_check(u8: np.ndarray, H: np.ndarray, read_window: Any, gsd_m: float,
-                    conf: dict[str, Any] | None, seed: int = 0) -> dict[str, Any] | None:  # fmt: skip
+                    conf: dict[str, Any] | None, seed: int = 0,
+                    z_enough: float = math.inf) -> dict[str, Any] | None:  # fmt: skip
     """How far the orthophoto's phase-congruency structure agrees with the query's at the pose
     ``H`` (query px -> map), as a z-score against ``STRUCTURE_DRAWS`` random poses (any rotation,
     the same scale, centred on any valid pixel of the window: the footprint grown by
     ``STRUCTURE_REACH`` of its side each way), at the query's GSD (``gsd_m``; the query shrunk to ``STRUCTURE_SIDE`` px when larger).
     A look-alike (the query's river bend laid on another bend of the same river) agrees only on
     the structure its matches were found on; a true pose, across dates and modalities, on much
-    more. None: the window cannot be read or too few random poses fall on it."""
+    more. The random poses are drawn in rounds of ``STRUCTURE_ROUND``; the check stops after a
+    round where z >= ``z_enough`` (a pose far beyond doubt: most true poses after one round).
+    None: the window cannot be read or too few random poses fall on it."""
     c = rift_conf(conf)
     H = np.asarray(H, float)
     k = min(1.0, STRUCTURE_SIDE / max(u8.shape))
@@ -963,17 +967,23 @@ def structure_check(u8: np.ndarray, H: np.ndarray, read_window: Any, gsd_m: floa
     vr, vc = np.nonzero(win)  # random poses centred on the orthophoto's valid pixels
     if not len(vr):
         return None
-    null = []
-    for i in rng.integers(0, len(vr), STRUCTURE_DRAWS):
+    if not math.isfinite(at):
+        return None
+    null: list[float] = []
+    z = math.nan
+    for k, i in enumerate(rng.integers(0, len(vr), STRUCTURE_DRAWS)):
         a = rng.uniform(0, 2 * math.pi)
         R = s * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]]) @ flip
         t = np.array([vc[i], vr[i]], float) - R @ np.array([(w - 1) / 2, (h - 1) / 2])
         v = _structure_corr(fq, win, np.r_[np.c_[R, t], [[0, 0, 1.0]]], c)
         if math.isfinite(v):
             null.append(v)
-    if len(null) < STRUCTURE_DRAWS // 5 or not math.isfinite(at):
+        if (k + 1) % STRUCTURE_ROUND == 0 and len(null) >= STRUCTURE_DRAWS // 5:
+            z = (at - float(np.mean(null))) / (float(np.std(null)) + 1e-9)
+            if z >= z_enough:
+                break
+    if len(null) < STRUCTURE_DRAWS // 5:
         return None
-    z = (at - float(np.mean(null))) / (float(np.std(null)) + 1e-9)
     return {"z": round(z, 2), "correlation": round(at, 4), "draws": len(null)}
 
 
@@ -1118,7 +1128,9 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
             r["accepted"] = rec["accepted"] = False
             rec["reason"] = "the orthophoto's tie points support a moved pose better (gain < 1)"
     if r["accepted"] and H is not None and float(c["structure_z_min"]) > 0:
-        rec["structure"] = st = structure_check(u8, H, view.read_window, float(q.gsd), c, q.seed)
+        zmin = float(c["structure_z_min"])
+        rec["structure"] = st = structure_check(u8, H, view.read_window, float(q.gsd), c, q.seed,
+                                                z_enough=2 * zmin)  # fmt: skip
         if st is not None and st["z"] < float(c["structure_z_min"]):
             r["accepted"] = rec["accepted"] = False
             rec["reason"] = (f"the orthophoto's structure agrees with the query's at the pose no "
