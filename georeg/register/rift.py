@@ -937,8 +937,8 @@ def structure_check(u8: np.ndarray, H: np.ndarray, read_window: Any, gsd_m: floa
     """How far the orthophoto's phase-congruency structure agrees with the query's at the pose
     ``H`` (query px -> map), as a z-score against ``STRUCTURE_DRAWS`` random poses (any rotation,
     the same scale, centred on any valid pixel of the window: the footprint grown by
-    ``STRUCTURE_REACH`` of its side each way), at the query's GSD (``gsd_m``; the query shrunk to ``STRUCTURE_SIDE`` px when larger).
-    A look-alike (the query's river bend laid on another bend of the same river) agrees only on
+    ``STRUCTURE_REACH`` of its side each way), at the query's GSD (``gsd_m``; the query shrunk to
+    ``STRUCTURE_SIDE`` px when larger). A look-alike (the query's river bend laid on another bend of the same river) agrees only on
     the structure its matches were found on; a true pose, across dates and modalities, on much
     more. The random poses are drawn in rounds of ``STRUCTURE_ROUND``; the check stops after a
     round where z >= ``z_enough`` (a pose far beyond doubt: most true poses after one round).
@@ -965,20 +965,18 @@ def structure_check(u8: np.ndarray, H: np.ndarray, read_window: Any, gsd_m: floa
     flip = np.diag([1.0, float(np.sign(np.linalg.det(Hw[:2, :2]))) or 1.0])
     rng = np.random.default_rng(seed)
     vr, vc = np.nonzero(win)  # random poses centred on the orthophoto's valid pixels
-    if not len(vr):
-        return None
-    if not math.isfinite(at):
+    if not len(vr) or not math.isfinite(at):
         return None
     null: list[float] = []
     z = math.nan
-    for k, i in enumerate(rng.integers(0, len(vr), STRUCTURE_DRAWS)):
+    for n, i in enumerate(rng.integers(0, len(vr), STRUCTURE_DRAWS)):
         a = rng.uniform(0, 2 * math.pi)
         R = s * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]]) @ flip
         t = np.array([vc[i], vr[i]], float) - R @ np.array([(w - 1) / 2, (h - 1) / 2])
         v = _structure_corr(fq, win, np.r_[np.c_[R, t], [[0, 0, 1.0]]], c)
         if math.isfinite(v):
             null.append(v)
-        if (k + 1) % STRUCTURE_ROUND == 0 and len(null) >= STRUCTURE_DRAWS // 5:
+        if (n + 1) % STRUCTURE_ROUND == 0 and len(null) >= STRUCTURE_DRAWS // 5:
             z = (at - float(np.mean(null))) / (float(np.std(null)) + 1e-9)
             if z >= z_enough:
                 break
@@ -1131,11 +1129,11 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
         zmin = float(c["structure_z_min"])
         rec["structure"] = st = structure_check(u8, H, view.read_window, float(q.gsd), c, q.seed,
                                                 z_enough=2 * zmin)  # fmt: skip
-        if st is not None and st["z"] < float(c["structure_z_min"]):
+        if st is not None and st["z"] < zmin:
             r["accepted"] = rec["accepted"] = False
             rec["reason"] = (f"the orthophoto's structure agrees with the query's at the pose no "
-                             f"better than at random poses nearby (z {st['z']:.1f} < "
-                             f"{float(c['structure_z_min']):g}): a look-alike")  # fmt: skip
+                             f"better than at random poses nearby (z {st['z']:.1f} < {zmin:g}): "
+                             "a look-alike")  # fmt: skip
     if r["accepted"] and H is not None:
         part = {"accepted": True, "homography": H.tolist(), "log10_nfa": r["log10_nfa"],
                 "inliers": r["inliers"], "matches": r["matches"], "residual_px": None,
