@@ -261,6 +261,28 @@ def _pucallpa(name: str):
     return q, next(s for s in scenes if s.name == q.map_scene)
 
 
+def _control_runner(seed: int):
+    """bench_crossspectral and ``run(name, rift_conf={})``: one query of Pucallpa's
+    visible control (draw ``seed``, blanked maps included) through the workflow's register path
+    (``wf_rift``, its rift section updated by ``rift_conf``) -> (record, query, scene)."""
+    import sys
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_crossspectral as bx
+    import bench_devset as bd
+
+    scenes, queries = bd.build_pucallpa(seed, unrelated=True, query="visible")
+
+    def run(name: str, rift_conf: dict | None = None):
+        q = next(x for x in queries if x.name == name)
+        sc = next(s for s in scenes if s.name == q.map_scene)
+        spec = bd.METHODS["wf_rift"]
+        spec = {**spec, "pipeline": {**spec["pipeline"], "rift": {**spec["pipeline"]["rift"], **(rift_conf or {})}}}
+        return bx.run_method(q, sc, spec, bx.query_seed(seed, q.name)), q, sc
+
+    return bx, run
+
+
 def test_pucallpa_second_pass_keeps_to_the_refused_candidates_place(shared_data):
     """Through the workflow's register path (bench_devset ``wf_rift``), the Pucallpa visible
     control (the query date's red/green, not its SWIR): 2015 on 2005, crop 1, the feature pose
@@ -270,20 +292,9 @@ def test_pucallpa_second_pass_keeps_to_the_refused_candidates_place(shared_data)
     crop 1 here, refuses that look-alike too: z 1.55 < ``structure_z_min``.)"""
     if not (shared_data / "swir_dates" / "landsat_pucallpa" / "2015.tif").exists():
         pytest.skip("Landsat Pucallpa absent")
-    import sys
-
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import bench_crossspectral as bx
-    import bench_devset as bd
-
-    scenes, queries = bd.build_pucallpa(11, unrelated=False, query="visible")
+    bx, run = _control_runner(11)
     for name, registered in (("puc_2015_on_2005_1_rg", False), ("puc_2015_on_2005_0_rg", True)):
-        q = next(x for x in queries if x.name == name)
-        sc = next(s for s in scenes if s.name == q.map_scene)
-        spec = bd.METHODS["wf_rift"]
-        if not registered:
-            spec = {**spec, "pipeline": {**spec["pipeline"], "rift": {"enabled": True, "structure_z_min": 0}}}
-        res = bx.run_method(q, sc, spec, bx.query_seed(11, q.name))
+        res, q, sc = run(name, {} if registered else {"structure_z_min": 0})
         assert res["second_pass"], name
         assert res["accepted"] is registered, (name, res["second_pass"])
         if registered:
@@ -487,17 +498,9 @@ def test_pucallpa_lookalike_meander_refused_by_the_structure_check(shared_data):
     whole map still registers within the benchmark's 5 px."""
     if not (shared_data / "swir_dates" / "landsat_pucallpa" / "1990.tif").exists():
         pytest.skip("Landsat Pucallpa absent")
-    import sys
-
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import bench_crossspectral as bx
-    import bench_devset as bd
-
-    scenes, queries = bd.build_pucallpa(13, unrelated=True, query="visible")
+    bx, run = _control_runner(13)
     for name, registered in (("puc_1985_on_1990_0_rg_blanked", False), ("puc_2020_on_1990_0_rg", True)):
-        q = next(x for x in queries if x.name == name)
-        sc = next(s for s in scenes if s.name == q.map_scene)
-        res = bx.run_method(q, sc, bd.METHODS["wf_rift"], bx.query_seed(13, q.name))
+        res, q, sc = run(name)
         assert res["accepted"] is registered, name
         if registered:
             assert bx.judge(q, sc, res)["error_px"] <= 5.0
