@@ -765,6 +765,48 @@ def judge(q: Query, sc_map: Scene, res: dict[str, Any]) -> dict[str, Any]:
 # ----------------------------------------------------------------------------- main
 
 
+def make_whole_query(sc: Scene, band: str, theta: float, i: int) -> Query:
+    """One SWIR band of ``sc`` whole, at its own GSD, rotated by ``theta`` degrees onto a canvas
+    that holds it (0 = nodata outside): the form of a delivered scene, not a crop."""
+    src = sc.swir[band]
+    h, w = src.shape
+    c, si = math.cos(math.radians(theta)), math.sin(math.radians(theta))
+    cw = int(math.ceil(abs(w * c) + abs(h * si)))
+    ch = int(math.ceil(abs(w * si) + abs(h * c)))
+    A = np.array([[c, -si], [si, c]])  # query px -> src px about the centres
+    t = np.array([(w - 1) / 2, (h - 1) / 2]) - A @ np.array([(cw - 1) / 2, (ch - 1) / 2])
+    M = np.c_[A, t]
+    warped = cv2.warpAffine(src, M, (cw, ch), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                            borderValue=np.nan)  # fmt: skip
+    u8 = _stretch(warped)
+    uu, vv = np.meshgrid(np.linspace(2, cw - 3, 16), np.linspace(2, ch - 3, 16))
+    qp = np.c_[uu.ravel(), vv.ravel()]
+    qp = qp[u8[qp[:, 1].astype(int), qp[:, 0].astype(int)] > 0]
+    return Query(f"whole_{sc.name}_{i}_{band}", sc.name, sc.name, {band: u8}, sc.swir_gsd, qp,
+                 sc.to_map(qp @ A.T + t))  # fmt: skip
+
+
+def build_whole_set(seed: int) -> tuple[list[Scene], list[Query]]:
+    """The delivered-scene form (the unseen Sentinel-2 case of issue 34): every Sentinel-2 scene
+    direction, each SWIR band whole at 20 m as its own query under a seeded rotation, against the
+    other date's 10 m luminance; and each scene's first band against another city's map of the
+    same half (it must end ``not_found``)."""
+    scenes = [sc for sc in all_scenes(enmap=False) if sc.name.startswith("s2_")]
+    rng = np.random.default_rng(seed + 700)
+    qs = [make_whole_query(sc, b, float(rng.uniform(0, 360)), 0) for sc in scenes for b in sc.swir]
+    neg = []
+    for k, sc in enumerate(scenes):
+        others = [o for o in scenes[k + 1 :] + scenes[:k]
+                  if o.city != sc.city and half_of(o.city) == half_of(sc.city)]  # fmt: skip
+        if not others:
+            others = [o for o in scenes if o.city != sc.city]
+        other = others[1 % len(others)]
+        q = next(x for x in qs if x.scene == sc.name)
+        neg.append(Query(q.name + "_vs_" + other.name, sc.name, other.name, q.bands, q.gsd,
+                         None, None))  # fmt: skip
+    return scenes, qs + neg
+
+
 def build_set(per_scene: int, seed: int, small: int = 1) -> tuple[list[Scene], list[Query]]:
     """Per scene: ``per_scene`` crops of half the scene side and ``small`` crops of 0.3-0.45 of
     it (seeded; Potsdam: 150 px crops throughout). Unrelated pairs: every query against the map
@@ -848,10 +890,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--per-scene", type=int, default=3, help="crops of half the scene side")
     ap.add_argument("--small", type=int, default=1, help="smaller crops (0.3-0.45 of the side)")
     ap.add_argument("--half", choices=("tuning", "checking", "both"), default="both")
-    ap.add_argument("--set", choices=("protocol", "small", "tiny"), default="protocol",
+    ap.add_argument("--set", choices=("protocol", "small", "tiny", "whole"), default="protocol",
                     help="small: the small-query development subset of the tuning cities "
                     "(45-100 px a side, own seed; its rows are the half 'small'); tiny: the "
-                    "same with 40-80 px, another seed (rows 'tiny')")  # fmt: skip
+                    "same with 40-80 px, another seed (rows 'tiny'); whole: each Sentinel-2 SWIR "
+                    "band whole at 20 m, rotated, by the protocol's halves")  # fmt: skip
     ap.add_argument("--small-per-scene", type=int, default=None,
                     help="--set small / tiny: crops per scene (default 6 / 5)")
     ap.add_argument("--seed", type=int, default=11)
@@ -876,6 +919,8 @@ def main(argv: list[str] | None = None) -> int:
         scenes, queries = build_small_set(a.small_per_scene or 6, a.seed)
     elif a.set == "tiny":
         scenes, queries = build_small_set(a.small_per_scene or 5, a.seed, TINY_SIDES, "tiny_", 600)
+    elif a.set == "whole":
+        scenes, queries = build_whole_set(a.seed)
     else:
         scenes, queries = build_set(a.per_scene, a.seed, a.small)
     by = {s.name: s for s in scenes}
@@ -883,7 +928,7 @@ def main(argv: list[str] | None = None) -> int:
         load_content_truth(scenes, ROOT / "results" / "benchmark" / "content_truth.json")
     if a.positives_only:
         queries = [q for q in queries if q.truth is not None]
-    if a.half != "both" and a.set == "protocol":
+    if a.half != "both" and a.set in ("protocol", "whole"):
         queries = [q for q in queries if half_of(by[q.scene].city) == a.half]
     methods = a.methods.split(",")
     rows: dict[str, list[dict[str, Any]]] = {m: [] for m in methods}
@@ -891,7 +936,7 @@ def main(argv: list[str] | None = None) -> int:
     for qi, q in enumerate(queries):
         if qi % n_shard != k_shard or qi < a.first:
             continue
-        half = a.set if a.set != "protocol" else half_of(by[q.scene].city)
+        half = a.set if a.set in ("small", "tiny") else half_of(by[q.scene].city)
         for name in methods:
             res = run_method(q, by[q.map_scene], METHODS[name], query_seed(a.seed, q.name))
             j = judge(q, by[q.map_scene], res)

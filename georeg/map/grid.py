@@ -150,6 +150,33 @@ def _source_info(path: str, map_crs: CRS | None) -> dict[str, Any]:
         }
 
 
+def ground_aspect(grid_path: str | os.PathLike | None) -> float:
+    """The width / height in map units of a pixel of the map's first orthophoto that is square on
+    the ground: for an orthophoto in a geographic CRS, the ground size of its pixel across over
+    its size along the meridian (cos(latitude) for square degrees); 1 for a projected one or no
+    grid. A lon/lat raster whose pixels are square in degrees is right when it was resampled to
+    that grid; when it is metric imagery stamped with a lon/lat bounding box (the OSCD release of
+    Sentinel-2 cities), the map warped to a conformal CRS is stretched by this much
+    (``georeg.register.search.MapView.aspect``)."""
+    if not grid_path or not Path(grid_path).exists():
+        return 1.0
+    from pyproj import Geod, Transformer
+
+    g = json.loads(Path(grid_path).read_text())
+    o = g["orthophotos"][0]
+    crs = CRS.from_wkt(o["crs"])
+    if not crs.is_geographic:
+        return 1.0
+    x0, y0, x1, y1 = o["bounds_map"]
+    lon, lat = Transformer.from_crs(CRS.from_wkt(g["crs"]), "EPSG:4326", always_xy=True).transform(
+        (x0 + x1) / 2, (y0 + y1) / 2)  # fmt: skip
+    a, e = abs(o["transform"][0]), abs(o["transform"][4])
+    geod = Geod(ellps="WGS84")
+    across = geod.inv(lon - a / 2, lat, lon + a / 2, lat)[2]
+    along = geod.inv(lon, lat - e / 2, lon, lat + e / 2)[2]
+    return float(across / along) if along > 0 else 1.0
+
+
 def build_grid(
     orthophotos: Sequence[str],
     tile_size_px: int,

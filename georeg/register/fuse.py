@@ -209,7 +209,11 @@ def fuse(
         # hold on its own rows only (SRIF oo 77 in a 120-reference mosaic: a 14-inlier part whose
         # scale changes 1.8x across the whole query, 18.6 px off; no true accept of the records
         # was implausible so: docs/BENCHMARKS.md "Session 20")
-        whole = acceptance.plausibility(Hb, width, height, gsd_m, conf.get("acceptance") or {})
+        # judged on the ground: a pose found on pixels of another aspect (``MapView.aspect``)
+        # maps the query's square pixels to map units that are not square on the ground
+        a = float(best.get("aspect") or 1.0)
+        whole = acceptance.plausibility(np.diag([a**-0.5, a**0.5, 1.0]) @ Hb, width, height, gsd_m,
+                                        conf.get("acceptance") or {})  # fmt: skip
         if not whole["ok"]:
             why = "; ".join(whole["reasons"])
             log.warning("full-query re-match not accepted (%s) and part %s's pose is not a "
@@ -481,6 +485,7 @@ def register_query(
     prior: Any = None,
     read_level: Any = None,
     map_id: str | None = None,
+    aspect: float = 1.0,
 ) -> dict[str, Any]:
     """The workflow's search_part jobs and fuse_parts in one process (the library's entry point):
     split plan, every part, the other sources (the small-query ones when ``read_window`` is
@@ -490,12 +495,12 @@ def register_query(
     is clipped to it. ``read_level``: the orthophoto as a ``georeg.register.level.LevelReader``
     (a query much coarser than the map searches a level near its GSD). ``map_id``: the
     orthophoto's identity, under which what the sources compute from it is kept in memory for
-    the next query (None: nothing kept). Returns the fused result with ``split``, ``parts``,
+    the next query (None: nothing kept). ``aspect``: ``MapView.aspect``. Returns the fused result with ``split``, ``parts``,
     ``sources``, the terms' records, ``prior`` and ``level``."""
     bounds = prior_bounds(prior, source.crs_wkt)
     h, w = u8.shape[-2:]
     view, factors, lrec = map_for_query(source, bounds, w, h, gsd_m, factors, conf, read_window,
-                                        read_level, map_id)  # fmt: skip
+                                        read_level, map_id, aspect=aspect)  # fmt: skip
     full = query_features(u8, (0, h), factors, view.source.features_conf)
     n = int(conf.get("parts", 2))
     parts = [search_one_part(u8, k, view.source, conf, gsd_m, factors, seed, full)
@@ -530,6 +535,7 @@ def run_fuse_parts(
     from pathlib import Path
 
     from georeg.io.atomic import write_json
+    from georeg.map.grid import ground_aspect
     from georeg.register.band import feature_scales, read_query_bands
     from georeg.register.geolocation import evaluate, write_geolocation
     from georeg.register.search import gsd_in_map_units, load_source
@@ -552,7 +558,7 @@ def run_fuse_parts(
         source, bounds, w, h, gsd, factors, reg_conf,
         None if not ortho else ortho_window_reader(ortho),
         None if not ortho else level.read_ortho_level(ortho),
-        None if not ortho else ortho_identity(ortho), cache_dir,
+        None if not ortho else ortho_identity(ortho), cache_dir, ground_aspect(grid_path),
     )  # fmt: skip
     full = query_features(u8, (0, h), factors, view.source.features_conf)
     timings["fuse_features"] = time.perf_counter() - t1

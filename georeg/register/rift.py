@@ -154,6 +154,7 @@ def xfeat_features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np
 #: the map features' code version in the cache key: a change of how they are computed (v2: the
 #: windows' affine 1..255 map) must not read features cached by an earlier version
 CACHE_VERSION = 2
+ASPECT_MIN = 0.03  # a MapView.aspect this far from 1 gets its own search when the first fails
 #: the settings the map's features depend on (the key of their cache)
 FEATURE_KEYS = ("kind", "nscale", "norient", "min_wavelength", "mult", "sigma_onf", "k", "g", "cut_off",
                 "kp_per_mpx", "max_kp", "grid", "patch", "cells", "map_window_px")  # fmt: skip
@@ -863,18 +864,28 @@ def polish(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, 
     return (H if out["moved_better"] else use), out
 
 
-def window_at(gray: np.ndarray, A: np.ndarray, g: float) -> tuple[np.ndarray, np.ndarray]:
+def window_at(gray: np.ndarray, A: np.ndarray, g: float, aspect: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """An orthophoto window (float, NaN = nodata; ``A`` its 3 x 3 pixel centre -> map) as uint8
     (0 = nodata) shrunk to ``g`` map units per pixel when finer, and its new ``A``. One affine
     map of the values to 1..255 (the window's own min and max): phase congruency is invariant
     to it, a percentile clip is not (the workflow lost 3 of 50 SRIF oi poses the source alone
-    finds on the same 8-bit mosaic, one inlier each)."""
+    finds on the same 8-bit mosaic, one inlier each). ``aspect`` != 1: resampled to pixels
+    ``aspect`` times as wide as high in map units, of the same area (``MapView.aspect``)."""
     from georeg.register.dense import _shrink, window_u8
 
     m_px = float(np.sqrt(abs(np.linalg.det(A[:2, :2]))))
     v = gray[np.isfinite(gray)]
     u8 = window_u8(gray, (float(v.min()), float(v.max())) if v.size else None)
     f = min(1.0, m_px / g)
+    if abs(aspect - 1.0) > 1e-9:  # (fx, fy): the window's pixel (m_px, m_px) -> the target's
+        ge = max(g, m_px)
+        fx, fy = m_px / (ge * math.sqrt(aspect)), m_px * math.sqrt(aspect) / ge
+        size = (max(1, round(u8.shape[1] * fx)), max(1, round(u8.shape[0] * fy)))
+        fx, fy = size[0] / u8.shape[1], size[1] / u8.shape[0]
+        img = cv2.resize(u8.astype(np.float32), size, interpolation=cv2.INTER_AREA if fx * fy < 1 else cv2.INTER_LINEAR)
+        ok = cv2.resize((u8 > 0).astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+        u8 = np.where(ok, np.maximum(np.round(img), 1), 0).astype(np.uint8)
+        return u8, A @ np.array([[1 / fx, 0, 0.5 / fx - 0.5], [0, 1 / fy, 0.5 / fy - 0.5], [0, 0, 1.0]])
     if f < 1.0:
         shrunk, ok = _shrink(u8, u8 > 0, f)
         u8 = np.where(ok, np.maximum(np.round(shrunk), 1), 0).astype(np.uint8)
@@ -963,6 +974,8 @@ def structure_check(u8: np.ndarray, H: np.ndarray, read_window: Any, gsd_m: floa
     at = _structure_corr(fq, win, Hw, c)
     s = math.sqrt(abs(np.linalg.det(Hw[:2, :2])))
     flip = np.diag([1.0, float(np.sign(np.linalg.det(Hw[:2, :2]))) or 1.0])
+    _, sv, Vt = np.linalg.svd(Hw[:2, :2])  # polar: the pose's shape beyond scale and rotation
+    K = Vt.T @ np.diag(sv) @ Vt / s  # (identity for a similarity; an anisotropic map's aspect)
     rng = np.random.default_rng(seed)
     vr, vc = np.nonzero(win)  # random poses centred on the orthophoto's valid pixels
     if not len(vr) or not math.isfinite(at):
@@ -971,7 +984,7 @@ def structure_check(u8: np.ndarray, H: np.ndarray, read_window: Any, gsd_m: floa
     z = math.nan
     for n, i in enumerate(rng.integers(0, len(vr), STRUCTURE_DRAWS)):
         a = rng.uniform(0, 2 * math.pi)
-        R = s * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]]) @ flip
+        R = s * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]]) @ flip @ K
         t = np.array([vc[i], vr[i]], float) - R @ np.array([(w - 1) / 2, (h - 1) / 2])
         v = _structure_corr(fq, win, np.r_[np.c_[R, t], [[0, 0, 1.0]]], c)
         if math.isfinite(v):
@@ -986,25 +999,28 @@ def structure_check(u8: np.ndarray, H: np.ndarray, read_window: Any, gsd_m: floa
 
 
 def read_map_features(read_window: Any, bounds: tuple[float, float, float, float], g: float,
-                      conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, float, np.ndarray] | None:  # fmt: skip
+                      conf: dict[str, Any], aspect: float = 1.0,
+                      ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray] | None:  # fmt: skip
     """Map features of the orthophoto in ``bounds`` at ``g`` map units per pixel, read by windows
     of ``map_window_px`` (each padded by a patch; keypoints kept in its core): keypoints in the
     working grid's px (origin the bounds' top left, north-up), descriptors, the valid area (px)
-    and the 3 x 3 working px -> map x, y. Memory is bounded by one window. None: nothing read."""
+    and the 3 x 3 working px -> map x, y. Memory is bounded by one window. None: nothing read.
+    ``aspect``: the working pixels ``aspect`` times as wide as high (area g^2; ``window_at``)."""
     c = rift_conf(conf)
-    G = np.array([[g, 0, bounds[0] + g / 2], [0, -g, bounds[3] - g / 2], [0, 0, 1.0]])
-    W = int(math.ceil((bounds[2] - bounds[0]) / g))
-    Hh = int(math.ceil((bounds[3] - bounds[1]) / g))
+    gx, gy = g * math.sqrt(aspect), g / math.sqrt(aspect)
+    G = np.array([[gx, 0, bounds[0] + gx / 2], [0, -gy, bounds[3] - gy / 2], [0, 0, 1.0]])
+    W = int(math.ceil((bounds[2] - bounds[0]) / gx))
+    Hh = int(math.ceil((bounds[3] - bounds[1]) / gy))
     side, pad = int(c["map_window_px"]), int(c["patch"])
     xys, ds, area = [], [], 0.0
     for r0 in range(0, Hh, side):
         for c0 in range(0, W, side):
-            box = (bounds[0] + (c0 - pad) * g, bounds[3] - (r0 + side + pad) * g,
-                   bounds[0] + (c0 + side + pad) * g, bounds[3] - (r0 - pad) * g)  # fmt: skip
+            box = (bounds[0] + (c0 - pad) * gx, bounds[3] - (r0 + side + pad) * gy,
+                   bounds[0] + (c0 + side + pad) * gx, bounds[3] - (r0 - pad) * gy)  # fmt: skip
             got = read_window(box)
             if got is None:
                 continue
-            u8, A = window_at(*got, g)
+            u8, A = window_at(*got, g, aspect)
             if not u8.any():
                 continue
             T = np.linalg.inv(G) @ A  # window px -> working px
@@ -1021,20 +1037,21 @@ def read_map_features(read_window: Any, bounds: tuple[float, float, float, float
 
 
 def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g: float,
-                        conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, float, np.ndarray] | None:  # fmt: skip
+                        conf: dict[str, Any], aspect: float = 1.0,
+                        ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray] | None:  # fmt: skip
     """``read_map_features`` kept per orthophoto (``view.ortho_id``; None: computed each time):
     the last map in memory and, when ``view.cache_dir`` is set, every map on disk
     (``<kind>_<key>.npz``, written through ``georeg.io.atomic.atomic_path``, so parallel jobs may
     race safely). The key: the orthophoto, ``bounds``, ``g``, the view's feature GSD,
-    ``FEATURE_KEYS`` and ``CACHE_VERSION``. Returns as ``read_map_features`` (stored at full
+    ``FEATURE_KEYS``, ``CACHE_VERSION`` and ``aspect``. Returns as ``read_map_features`` (stored at full
     precision: a result does not depend on whether they were computed now or read back)."""
     c = rift_conf(conf)
     oid = view.ortho_id
     if oid is None:
-        return read_map_features(view.read_window, bounds, g, c)
+        return read_map_features(view.read_window, bounds, g, c, aspect)
     blob = json.dumps([oid, [round(float(v), 6) for v in bounds], round(g, 9),
                        round(float(view.source.gsd_m), 9), [c[k] for k in FEATURE_KEYS],
-                       CACHE_VERSION])  # fmt: skip
+                       CACHE_VERSION, *([round(aspect, 6)] if aspect != 1.0 else [])])  # fmt: skip
     key = hashlib.sha256(blob.encode()).hexdigest()[:20]
     if _MEMO.get(c["kind"], ("",))[0] == key:
         return _MEMO[c["kind"]][1]
@@ -1051,7 +1068,7 @@ def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g:
             _MEMO[c["kind"]] = (key, got)
             return got
     t0 = time.perf_counter()
-    got = read_map_features(view.read_window, bounds, g, c)
+    got = read_map_features(view.read_window, bounds, g, c, aspect)
     if got is None:
         return None
     log.info("%s: map features of %.1f Mpx at %.3g map units/px: %d keypoints in %.1f s",
@@ -1063,6 +1080,30 @@ def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g:
             np.savez(tmp, xy=got[0], desc=got[1], area=np.float64(got[2]), G=got[3])
     _MEMO[c["kind"]] = (key, got)
     return got
+
+
+def _search(q: Any, u8: np.ndarray, view: Any, b: tuple[float, ...], g: float, c: dict[str, Any],
+            conf: dict[str, Any], aspect: float, tests_before: int,
+            ) -> tuple[dict[str, Any], np.ndarray | None, dict[str, Any] | None]:  # fmt: skip
+    """One ``register`` of the query against the map's features on the working grid of pixel
+    ``aspect``: the result, its pose (query px -> map) and record (None: map unreadable)."""
+    got = cached_map_features(view, b, g, c, aspect)
+    if got is None:
+        return {}, None, None
+    mxy, md, area, G = got
+    r = register(u8, None, float(q.gsd) / g, conf.get("acceptance") or {}, c, map_feats=(mxy, md),
+                 gsd_m=float(q.gsd), map_gsd_m=g, tests_before=tests_before, area=area)  # fmt: skip
+    H = None if r["H"] is None else G @ r["H"]
+    rec = {"ran": True, "candidates": int(r["tests"]), "accepted": r["accepted"],
+           "tests_before": tests_before, "inliers": r["inliers"],
+           "log10_nfa": None if math.isinf(r["log10_nfa"]) else r["log10_nfa"],
+           "null_log10_nfa": None if math.isinf(r["null_log10_nfa"]) else r["null_log10_nfa"],
+           "matches": r["matches"], "angle_deg": r["angle_deg"], "map_px": int(area),
+           "per_rotation": [[a, round(v, 2) if math.isfinite(v) else None] for a, v in r["per_rotation"]],
+           "map_keypoints": len(mxy), "nearest_k": n_candidates(len(md), c), "confirm": r.get("confirm"), "rescue": r.get("rescue"),
+           "reangle": r.get("reangle"), "reason": f"fewer than min_cells ({c['min_cells']}) matched cells at every rotation"
+           if r["decision"] is None else r["decision"].get("reason", ""), "aspect": round(aspect, 4)}  # fmt: skip
+    return r, H, rec
 
 
 def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
@@ -1102,24 +1143,25 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     if why:
         return parts, {"ran": False, "reason": why}
     t0 = time.perf_counter()
-    got = cached_map_features(view, b, g, c)
-    if got is None:
-        return parts, {"ran": False, "reason": "orthophoto window unreadable"}
-    mxy, md, area, G = got
     u8 = q.u8 if q.u8.ndim == 2 else q.u8[0]
-    r = register(u8, None, float(q.gsd) / g, conf.get("acceptance") or {}, c, map_feats=(mxy, md),
-                 gsd_m=float(q.gsd), map_gsd_m=g, tests_before=q.tests_before, area=area)  # fmt: skip
-    H = None if r["H"] is None else G @ r["H"]
-    rec = {"ran": True, "candidates": int(r["tests"]), "accepted": r["accepted"],
-           "tests_before": int(q.tests_before), "inliers": r["inliers"],
-           "log10_nfa": None if math.isinf(r["log10_nfa"]) else r["log10_nfa"],
-           "null_log10_nfa": None if math.isinf(r["null_log10_nfa"]) else r["null_log10_nfa"],
-           "matches": r["matches"], "angle_deg": r["angle_deg"], "map_px": int(area),
-           "per_rotation": [[a, round(v, 2) if math.isfinite(v) else None] for a, v in r["per_rotation"]],
-           "map_keypoints": len(mxy), "nearest_k": n_candidates(len(md), c), "confirm": r.get("confirm"), "rescue": r.get("rescue"),
-           "reangle": r.get("reangle"), "reason": f"fewer than min_cells ({c['min_cells']}) matched cells at every rotation"
-           if r["decision"] is None else r["decision"].get("reason", ""),
-           "seconds": time.perf_counter() - t0}  # fmt: skip
+    a = float(getattr(view, "aspect", 1.0) or 1.0)
+    r, H, rec = _search(q, u8, view, b, g, c, conf, 1.0, int(q.tests_before))
+    if rec is None:
+        return parts, {"ran": False, "reason": "orthophoto window unreadable"}
+    passes = [rec]
+    if not r["accepted"] and abs(a - 1.0) >= ASPECT_MIN:
+        # the orthophoto's pixels square on the ground instead (``MapView.aspect``): one more
+        # search, its tests counted after the first's
+        r2, H2, rec2 = _search(q, u8, view, b, g, c, conf, a, int(q.tests_before) + int(r["tests"]))
+        if rec2 is not None:
+            passes.append(rec2)
+            if r2["accepted"]:
+                r, H, rec = r2, H2, rec2
+    if len(passes) > 1:
+        rec = {**rec, "candidates": sum(p["candidates"] for p in passes),
+               "aspects": [{k: p[k] for k in ("aspect", "candidates", "accepted", "log10_nfa", "inliers", "reason")}
+                           for p in passes]}  # fmt: skip
+    rec["seconds"] = time.perf_counter() - t0
     if r["accepted"] and H is not None and c["polish"]:
         H, rec["polish"] = polish(u8, H, view.read_window, conf)
         if rec["polish"] and rec["polish"]["moved_better"]:
@@ -1138,7 +1180,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
         part = {"accepted": True, "homography": H.tolist(), "log10_nfa": r["log10_nfa"],
                 "inliers": r["inliers"], "matches": r["matches"], "residual_px": None,
                 "method": key, "part": len(parts), "rows": [0, u8.shape[0]], "whole_query": True,
-                "candidates_tried": int(r["tests"]), "candidates": []}  # fmt: skip
+                "candidates_tried": int(rec["candidates"]), "candidates": [], "aspect": rec["aspect"]}  # fmt: skip
         parts = [*parts, part]
     return parts, rec
 

@@ -139,6 +139,7 @@ def map_for_query(
     read_level: level.LevelReader | None = None,
     ortho_id: str | None = None,
     cache_dir: str | None = None,
+    aspect: float = 1.0,
 ) -> tuple[MapView, list[float], dict[str, Any] | None]:
     """The map a query searches and the query's resize factors: the map clipped to the
     location prior (``clip_to_prior``), and, when the query is much coarser than the map's
@@ -146,10 +147,10 @@ def map_for_query(
     features (``georeg.register.level``) with the query at factor 1; the dense sources and checks
     then read the orthophoto at that level too (``level.window_reader``: the null scan, the
     small-query windows and the orthophoto check shrink the map to about the query's GSD
-    anyway). ``ortho_id`` / ``cache_dir``: ``MapView``'s. Returns (view, factors, the level's
+    anyway). ``ortho_id`` / ``cache_dir`` / ``aspect``: ``MapView``'s. Returns (view, factors, the level's
     record or None when no level was asked for)."""
     source = clip_to_prior(source, prior, width, height, gsd_m, factors)
-    view = MapView(source, read_window, ortho_id, cache_dir)
+    view = MapView(source, read_window, ortho_id, cache_dir, aspect)
     lconf = {**level.DEFAULTS, **(conf.get("level") or {})}
     g = level.level_gsd(gsd_m, source.gsd_m, lconf)
     if g is None:
@@ -266,12 +267,16 @@ class MapView:
     -> (float gray, NaN = nodata; 3 x 3 window pixel centre -> map x, y) or None; None = no
     orthophoto). ``ortho_id``: the orthophoto's identity (None: unknown), which keys what the
     sources compute from it and keep (``georeg.register.rift.cached_map_features``): in memory,
-    and on disk under ``cache_dir`` when given."""
+    and on disk under ``cache_dir`` when given. ``aspect``: the width / height in map units of a
+    map pixel that is square on the ground, when that may differ from 1 (a lon/lat orthophoto
+    whose pixels are square on the ground, not in degrees: ``georeg.map.grid.ground_aspect``);
+    the map-wide sources search it too when the square pixel fails."""
 
     source: MapSource
     read_window: Any = None
     ortho_id: str | None = None
     cache_dir: str | None = None
+    aspect: float = 1.0
 
 
 SPLIT_DEFAULTS: dict[str, Any] = {
