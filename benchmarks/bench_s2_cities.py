@@ -18,6 +18,10 @@ query's first band against the map's luminance in the map CRS, ratio 0.8, MAGSAC
 
     nice python benchmarks/bench_s2_cities.py --work /tmp/s2cities --out benchmarks/out/s2.json
 
+Three queries of each city direction run against its map in one ``snakemake`` run (the map made
+once): both bands (``query.tif``), and B11 and B12 each alone as a one-band file without
+wavelengths.
+
 Seconds: wall time of the whole ``snakemake`` run (map, index, registration, products, report).
 """
 
@@ -59,8 +63,10 @@ def _band(city: str, date: int, band: str) -> tuple[np.ndarray, dict[str, Any]]:
 
 def make_case(city: str, reverse: bool, theta: float, out: Path) -> dict[str, Any]:
     """Write the user's inputs of one city direction under ``out``: ``map.tif`` (EPSG:4326 RGB),
-    ``query.tif`` (B11 + B12 rotated by ``theta`` deg), ``truth.tif`` (2 bands: map x, y of each
-    query pixel centre in the map CRS); returns the ``map`` and ``queries`` config entries."""
+    ``query.tif`` (B11 + B12 rotated by ``theta`` deg), ``b11.tif`` and ``b12.tif`` (each band
+    alone, without its wavelength), ``truth.tif`` (2 bands: map x, y of each query pixel centre
+    in the map CRS); returns the ``map`` entry and the ``query`` (both bands), ``b11`` and ``b12``
+    query entries."""
     import cv2
     import rasterio
     from pyproj import Transformer
@@ -94,6 +100,10 @@ def make_case(city: str, reverse: bool, theta: float, out: Path) -> dict[str, An
         ds.write(np.stack([warp(b11), warp(b12)]).astype(np.uint16))
         ds.set_band_description(1, "1610 nm")
         ds.set_band_description(2, "2190 nm")
+    for name, band in (("b11", b11), ("b12", b12)):  # one band, no wavelength: band 0 alone
+        with rasterio.open(out / f"{name}.tif", "w", driver="GTiff", width=cw, height=ch, count=1,
+                           dtype="uint16", nodata=0) as ds:  # fmt: skip
+            ds.write(warp(band).astype(np.uint16)[None])
     uu, vv = np.meshgrid(np.arange(cw, dtype=float), np.arange(ch, dtype=float))
     sx, sy = A[0, 0] * uu + A[0, 1] * vv + off[0], A[1, 0] * uu + A[1, 1] * vv + off[1]
     T = p11["transform"]
@@ -102,8 +112,10 @@ def make_case(city: str, reverse: bool, theta: float, out: Path) -> dict[str, An
     with rasterio.open(out / "truth.tif", "w", driver="GTiff", width=cw, height=ch, count=2,
                        dtype="float64") as ds:  # fmt: skip
         ds.write(np.stack([X, Y]))
+    truth = str(out / "truth.tif")
     return {"map": {"orthophoto": str(out / "map.tif"), "crs": crs, "lidar": []},
-            "query": {"image": str(out / "query.tif"), "gsd_m": 20.0, "truth": str(out / "truth.tif")}}  # fmt: skip
+            "query": {"image": str(out / "query.tif"), "gsd_m": 20.0, "truth": truth},
+            **{k: {"image": str(out / f"{k}.tif"), "gsd_m": 20.0, "truth": truth} for k in ("b11", "b12")}}  # fmt: skip
 
 
 def run_workflow(work: Path, map_entry: dict[str, Any], queries: dict[str, Any]) -> dict[str, Any]:
@@ -202,34 +214,39 @@ def main(argv: list[str] | None = None) -> int:
         half = "tuning" if city in TUNING else "checking"
         other = next(n for n in names[k + 1:] + names[:k] if n.removesuffix("_rev").split("_")[0]
                      != city.split("_")[0] and (n.removesuffix("_rev") in TUNING) == (half == "tuning"))  # fmt: skip
-        queries = {"q": made[name]["query"], "other": {k: v for k, v in made[other]["query"].items() if k != "truth"}}
+        queries = {"q": made[name]["query"], "b11": made[name]["b11"], "b12": made[name]["b12"],
+                   "other": {k: v for k, v in made[other]["query"].items() if k != "truth"}}  # fmt: skip
         res = run_workflow(work / "runs" / name, made[name]["map"], queries)
-        for key, qname, positive in (("q", name, True), ("other", other, False)):
-            r = res[key]
+        for key, r in res.items():
+            positive = key != "other"
             s = (sift_plain(work / "runs" / name, key, queries[key].get("truth"))
                  if r["status"] != "error" else {"accepted": False})  # fmt: skip
-            row = {"map": name, "query": qname, "half": half, "positive": positive, **r,
+            row = {"map": name, "query": other if key == "other" else name, "kind": key, "half": half,
+                   "positive": positive, **r,
                    "outcome": outcome(positive, r.get("status") == "registered", r.get("median_px")),
                    "sift_plain": {**s, "outcome": outcome(positive, s["accepted"], s.get("median_px"))}}  # fmt: skip
             rows.append(row)
             mp = "-" if r.get("median_px") is None else f"{r['median_px']:.2f}"
-            print(f"{half[:5]} {qname:14s} on {name:14s} {row['outcome']:12s} {mp:>6s} px "
+            print(f"{half[:5]} {row['query'] + ' ' + key:20s} on {name:14s} {row['outcome']:12s} {mp:>6s} px "
                   f"{r['seconds']:5.1f} s by {r.get('sources')}  plain SIFT {row['sift_plain']['outcome']}",
                   flush=True)  # fmt: skip
-    print("| method | half | registered | false accepts | other city's map accepted |")
-    print("|---|---|---:|---:|---:|")
+    print("| method | half | both bands pooled | B11 alone | B12 alone | false accepts | other city's map accepted |")
+    print("|---|---|---:|---:|---:|---:|---:|")
     summary: dict[str, Any] = {}
     for method in ("workflow", "sift_plain"):
         for half in ("tuning", "checking"):
-            rs = [r if method == "workflow" else r["sift_plain"] for r in rows if r["half"] == half]
-            pos = [x for x, r in zip(rs, (r for r in rows if r["half"] == half), strict=True) if r["positive"]]
-            neg = len(rs) - len(pos)
-            sm = {"success": sum(x["outcome"] == "success" for x in pos), "positives": len(pos),
-                  "false_accept": sum(x["outcome"] == "false_accept" for x in pos),
-                  "negatives_accepted": sum(x["outcome"] == "accepted" for x in rs), "negatives": neg}  # fmt: skip
+            rs = [r if method == "workflow" else {**r["sift_plain"], "kind": r["kind"]}
+                  for r in rows if r["half"] == half]  # fmt: skip
+            sm: dict[str, Any] = {}
+            for kind in ("q", "b11", "b12"):
+                pos = [x for x in rs if x["kind"] == kind]
+                sm[kind] = f"{sum(x['outcome'] == 'success' for x in pos)}/{len(pos)}"
+            sm["false_accept"] = sum(x["outcome"] == "false_accept" for x in rs)
+            neg = [x for x in rs if x["kind"] == "other"]
+            sm["negatives"] = f"{sum(x['outcome'] == 'accepted' for x in neg)}/{len(neg)}"
             summary[f"{method}/{half}"] = sm
-            print(f"| {method} | {half} | {sm['success']}/{sm['positives']} | {sm['false_accept']} "
-                  f"| {sm['negatives_accepted']}/{neg} |")  # fmt: skip
+            print(f"| {method} | {half} | {sm['q']} | {sm['b11']} | {sm['b12']} | {sm['false_accept']} "
+                  f"| {sm['negatives']} |")  # fmt: skip
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(a.out).with_suffix(".tmp")
     tmp.write_text(json.dumps({"summary": summary, "rows": rows}, indent=1, default=float))

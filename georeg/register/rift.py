@@ -154,7 +154,11 @@ def xfeat_features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np
 #: the map features' code version in the cache key: a change of how they are computed (v2: the
 #: windows' affine 1..255 map) must not read features cached by an earlier version
 CACHE_VERSION = 2
-ASPECT_MIN = 0.03  # a MapView.aspect this far from 1 gets its own search when the first fails
+#: a MapView.aspect this far from 1 gets its own search beside the square pixels; nearer, the
+#: square pixel holds (Abu Dhabi, Hong Kong at 0.92-0.93: 4 of 4 by the feature search) and a second
+#: search only adds chances (Norcia's query on Hong Kong's map: rift at 0.93, log10 NFA -3.7,
+#: refused only by the polish; benchmarks/bench_s2_cities.py, session 30)
+ASPECT_MIN = 0.1
 #: the settings the map's features depend on (the key of their cache)
 FEATURE_KEYS = ("kind", "nscale", "norient", "min_wavelength", "mult", "sigma_onf", "k", "g", "cut_off",
                 "kp_per_mpx", "max_kp", "grid", "patch", "cells", "map_window_px")  # fmt: skip
@@ -1145,21 +1149,22 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     t0 = time.perf_counter()
     u8 = q.u8 if q.u8.ndim == 2 else q.u8[0]
     a = float(getattr(view, "aspect", 1.0) or 1.0)
-    r, H, rec = _search(q, u8, view, b, g, c, conf, 1.0, int(q.tests_before))
-    if rec is None:
+    # the map's pixels square in map units, and, when the map may be square on the ground
+    # instead (``MapView.aspect``), at that aspect too: the better pose wins, each search's NFA
+    # counting the other's rotations
+    aspects = [1.0] + ([a] if abs(a - 1.0) >= ASPECT_MIN else [])
+    other = int(c["rotations"]) * (len(aspects) - 1)
+    passes = []
+    for k in aspects:
+        got = _search(q, u8, view, b, g, c, conf, k, int(q.tests_before) + other)
+        if got[2] is not None:
+            passes.append(got)
+    if not passes:
         return parts, {"ran": False, "reason": "orthophoto window unreadable"}
-    passes = [rec]
-    if not r["accepted"] and abs(a - 1.0) >= ASPECT_MIN:
-        # the orthophoto's pixels square on the ground instead (``MapView.aspect``): one more
-        # search, its tests counted after the first's
-        r2, H2, rec2 = _search(q, u8, view, b, g, c, conf, a, int(q.tests_before) + int(r["tests"]))
-        if rec2 is not None:
-            passes.append(rec2)
-            if r2["accepted"]:
-                r, H, rec = r2, H2, rec2
+    r, H, rec = max(passes, key=lambda p: (bool(p[0]["accepted"]), -p[0]["log10_nfa"]))
     if len(passes) > 1:
-        rec = {**rec, "candidates": sum(p["candidates"] for p in passes),
-               "aspects": [{k: p[k] for k in ("aspect", "candidates", "accepted", "log10_nfa", "inliers", "reason")}
+        rec = {**rec, "candidates": sum(p[2]["candidates"] for p in passes),
+               "aspects": [{k: p[2][k] for k in ("aspect", "candidates", "accepted", "log10_nfa", "inliers", "reason")}
                            for p in passes]}  # fmt: skip
     rec["seconds"] = time.perf_counter() - t0
     if r["accepted"] and H is not None and c["polish"]:
