@@ -8,7 +8,8 @@ over the pixels, square in degrees), ``map.crs`` the city's UTM zone (what the i
 for); the query is the other date's B11 + B12 whole, rotated onto a canvas (a 2-band GeoTIFF
 without CRS, wavelengths in the band descriptions, ``gsd_m: 20``); the truth is every query
 pixel's map x, y through the two dates' geotransforms. Each city in both date directions; each
-query also against another city's map (it must end ``not_found``). Success: registered with a
+map also gets another city's query of its half (``--others all``: every other city's), which
+must end ``not_found``. Success: registered with a
 median error <= 5 map px. Halves by city as the cross-spectral protocol: tuning Abu Dhabi,
 Saclay; checking Hong Kong, Norcia.
 
@@ -195,6 +196,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=str(ROOT / "results" / "benchmark" / "s2_cities.json"))
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--cities", default="", help="comma-separated subset (default: all five)")
+    ap.add_argument("--others", choices=("half", "all"), default="half",
+                    help="negatives per map: one other city's query of its half, or every other city's")
     a = ap.parse_args(argv)
     if not OSCD.is_dir():
         print(f"no development data at {OSCD}", file=sys.stderr)
@@ -212,16 +215,23 @@ def main(argv: list[str] | None = None) -> int:
     for k, name in enumerate(names):
         city = name.removesuffix("_rev")
         half = "tuning" if city in TUNING else "checking"
-        other = next(n for n in names[k + 1:] + names[:k] if n.removesuffix("_rev").split("_")[0]
-                     != city.split("_")[0] and (n.removesuffix("_rev") in TUNING) == (half == "tuning"))  # fmt: skip
+        base = city.split("_")[0]
+        others = [n for n in names[k + 1:] + names[:k] if n.removesuffix("_rev").split("_")[0] != base]
+        if a.others == "all":  # every other city's query (one date direction each)
+            others = [n for n in others if not n.endswith("_rev")]
+            others = [n for i, n in enumerate(others) if n.split("_")[0] not in {m.split("_")[0] for m in others[:i]}]
+        else:  # one, of the same half
+            others = [next(n for n in others if (n.removesuffix("_rev") in TUNING) == (half == "tuning"))]
         queries = {"q": made[name]["query"], "b11": made[name]["b11"], "b12": made[name]["b12"],
-                   "other": {k: v for k, v in made[other]["query"].items() if k != "truth"}}  # fmt: skip
+                   **{f"other_{o}": {k: v for k, v in made[o]["query"].items() if k != "truth"}
+                      for o in others}}  # fmt: skip
         res = run_workflow(work / "runs" / name, made[name]["map"], queries)
         for key, r in res.items():
-            positive = key != "other"
+            positive = not key.startswith("other")
             s = (sift_plain(work / "runs" / name, key, queries[key].get("truth"))
                  if r["status"] != "error" else {"accepted": False})  # fmt: skip
-            row = {"map": name, "query": other if key == "other" else name, "kind": key, "half": half,
+            row = {"map": name, "query": key.removeprefix("other_") if not positive else name,
+                   "kind": key if positive else "other", "half": half,
                    "positive": positive, **r,
                    "outcome": outcome(positive, r.get("status") == "registered", r.get("median_px")),
                    "sift_plain": {**s, "outcome": outcome(positive, s["accepted"], s.get("median_px"))}}  # fmt: skip
