@@ -9,6 +9,7 @@ The table of all cases is docs/RELIABILITY.md.
 from __future__ import annotations
 
 import gzip
+import math
 import os
 import subprocess
 import tracemalloc
@@ -226,6 +227,22 @@ def test_query_gsd_in_metres_meets_map_in_feet():
     assert gsd_in_map_units(0.8, ftus) == pytest.approx(0.8 / 0.3048006096, rel=1e-9)
     assert gsd_in_map_units(0.8, CRS.from_epsg(32611).to_wkt()) == 0.8
     assert gsd_in_map_units(None, ftus) is None
+
+
+def test_query_gsd_meets_a_web_mercator_map_at_its_latitude():
+    """A Web Mercator map's metre is 1 / cos(latitude) ground metres: at 48.7 N a 20 m query
+    pixel spans 30.3 map units (searched at 20 it was `not_found`: session 30, Saclay);
+    UTM's scale (< 0.1 % from 1) is left out, so UTM runs are unchanged."""
+    from pyproj import Transformer
+
+    def at(epsg: str) -> tuple[float, float]:
+        return Transformer.from_crs("EPSG:4326", epsg, always_xy=True).transform(2.2, 48.7)
+
+    merc = CRS.from_epsg(3857).to_wkt()
+    assert gsd_in_map_units(20.0, merc, at("EPSG:3857")) == pytest.approx(20.0 / math.cos(math.radians(48.7)), rel=3e-3)
+    assert gsd_in_map_units(20.0, merc) == 20.0  # no centre: the unit alone
+    utm = CRS.from_epsg(32631).to_wkt()
+    assert gsd_in_map_units(20.0, utm, at("EPSG:32631")) == 20.0
 
 
 def test_lidar_in_feet_under_a_metre_map(tmp_path):

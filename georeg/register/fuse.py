@@ -538,7 +538,7 @@ def run_fuse_parts(
     from georeg.map.grid import ground_aspect
     from georeg.register.band import feature_scales, read_query_bands
     from georeg.register.geolocation import evaluate, write_geolocation
-    from georeg.register.search import gsd_in_map_units, load_source
+    from georeg.register.search import gsd_in_map_units, load_source, map_centre
 
     t0 = time.perf_counter()
     meta = json.loads(Path(band_json).read_text())
@@ -547,7 +547,7 @@ def run_fuse_parts(
     bounds = prior_bounds(meta.get("prior"), source.crs_wkt, band_json)
     u8 = read_query_bands(band_tif)  # every pooled band, the primary first
     h, w = u8.shape[-2:]
-    gsd = gsd_in_map_units(meta.get("gsd_m"), source.crs_wkt)
+    gsd = gsd_in_map_units(meta.get("gsd_m"), source.crs_wkt, map_centre(source))
     timings: dict[str, Any] = {
         "query_band": meta.get("seconds"),
         "search_parts": {str(p["part"]): p.get("seconds") for p in parts},

@@ -798,19 +798,35 @@ def load_source(index_path: str | Path, grid_path: str | Path | None = None) -> 
     return src
 
 
-def gsd_in_map_units(gsd_m: float | None, crs_wkt: str | None) -> float | None:
-    """The query's ``gsd_m`` (metres) in the map CRS's horizontal unit (feet maps: / 0.3048...).
+def map_centre(source: MapSource) -> tuple[float, float]:
+    """The centre of the map's features' bounds (map x, y)."""
+    b = source.bounds
+    return (float(b[0] + b[2]) / 2, float(b[1] + b[3]) / 2)
+
+
+def gsd_in_map_units(gsd_m: float | None, crs_wkt: str | None,
+                     at: tuple[float, float] | None = None) -> float | None:
+    """The query's ``gsd_m`` (metres on the ground) in the map CRS's horizontal unit: / the
+    unit's metres (feet maps: / 0.3048...), x the projection's scale at ``at`` (map x, y, the
+    map's centre; none: 1): a Web Mercator map's metre is 1 / cos(latitude) ground metres
+    (1.51 at 48.7 N, beyond the acceptance's scale tolerance), a UTM map's 0.9996-1.001.
 
     Everything on the map side (feature GSD, keypoint xy, homography scale) is in CRS units.
     """
     if not gsd_m or not crs_wkt:
         return gsd_m
-    from pyproj import CRS
+    from pyproj import CRS, Proj, Transformer
 
     crs = CRS.from_user_input(crs_wkt)
-    if crs.is_projected and crs.axis_info:
-        return float(gsd_m) / float(crs.axis_info[0].unit_conversion_factor)
-    return gsd_m
+    if not (crs.is_projected and crs.axis_info):
+        return gsd_m
+    k = 1.0
+    if at is not None:
+        lon, lat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(*at)
+        f = Proj(crs).get_factors(lon, lat)
+        if math.isfinite(f.areal_scale) and abs(math.sqrt(f.areal_scale) - 1.0) > 0.01:
+            k = math.sqrt(f.areal_scale)  # (UTM's, state planes' < 0.1 %: left out)
+    return float(gsd_m) / float(crs.axis_info[0].unit_conversion_factor) * k
 
 
 def run_search_part(
@@ -837,7 +853,7 @@ def run_search_part(
     u8 = read_query_bands(band_tif)  # every pooled band, the primary first
     source = load_source(index_path, grid_path)
     t_load = time.perf_counter() - t0
-    gsd = gsd_in_map_units(meta.get("gsd_m"), source.crs_wkt)
+    gsd = gsd_in_map_units(meta.get("gsd_m"), source.crs_wkt, map_centre(source))
     factors = feature_scales(gsd, source.gsd_m, reg_conf.get("unknown_gsd_factors", [1.0]))
     prior = prior_bounds(meta.get("prior"), source.crs_wkt, band_json)
     reader = None if not ortho else level.read_ortho_level(ortho)
