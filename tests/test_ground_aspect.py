@@ -65,3 +65,25 @@ def test_sentinel2_city_in_lon_lat_registers_through_the_workflow(shared_data, t
     assert [a["accepted"] for a in q["aspects"]] == [False, True], q["aspects"]
     assert q["aspects"][1]["aspect"] == pytest.approx(0.736, abs=0.01)
     assert res["other"]["status"] == "not_found", res["other"]
+
+
+@pytest.mark.slow
+def test_weak_chance_pose_of_another_city_is_refused_by_its_structure(shared_data, tmp_path):
+    """Norcia's query (rotated 53.25 deg, bench_s2_cities seed 11) on Abu Dhabi's map: rift
+    lays it there by chance (log10 NFA -3.6, 5 of 28 cells; confirmed, polished) and the
+    structure agrees at z 2.41, above ``structure_z_min`` 2.2 but below the 2.75 a weak pose
+    (log10 NFA above -6) needs: ``not_found``."""
+    if not (shared_data / "swir_dates" / "oscd_dev" / "abudhabi").is_dir():
+        pytest.skip("OSCD Abu Dhabi absent")
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import bench_s2_cities as bs
+
+    case = bs.make_case("abudhabi", False, 46.29, tmp_path / "abudhabi")
+    other = bs.make_case("norcia", False, 53.25339044788414, tmp_path / "norcia")["query"]
+    other.pop("truth")
+    res = bs.run_workflow(tmp_path / "run", case["map"], {"other": other})
+    assert res["other"]["status"] == "not_found", res["other"]
+    reg = json.loads((tmp_path / "run/results/queries/other/registration.json").read_text())
+    rift = reg["split"]["rift"]
+    assert "a weak pose" in rift["reason"], rift["reason"]
+    assert 2.2 <= rift["structure"]["z"] < 2.75 and rift["log10_nfa"] > -6, rift
