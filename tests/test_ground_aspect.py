@@ -43,6 +43,23 @@ def test_ground_aspect_of_square_degrees_is_the_cosine_of_the_latitude(tmp_path)
     assert json.loads((tmp_path / "geo.json").read_text())["orthophotos"][0]["crs"]
 
 
+def _city_run(shared_data: Path, tmp_path: Path, map_city: str, own: float | None,
+              other_city: str, other_theta: float) -> dict:
+    """bench_s2_cities' user path: ``map_city``'s map with its own query rotated by ``own``
+    deg (None: none) and ``other_city``'s query (no truth) as ``other``, through ``snakemake``."""
+    for c in (map_city, other_city):
+        if not (shared_data / "swir_dates" / "oscd_dev" / c).is_dir():
+            pytest.skip(f"OSCD {c} absent")
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import bench_s2_cities as bs
+
+    case = bs.make_case(map_city, False, own or 0.0, tmp_path / map_city)
+    other = bs.make_case(other_city, False, other_theta, tmp_path / other_city)["query"]
+    other.pop("truth")
+    return bs.run_workflow(tmp_path / "run", case["map"],
+                           {**({"q": case["query"]} if own is not None else {}), "other": other})
+
+
 @pytest.mark.slow
 def test_sentinel2_city_in_lon_lat_registers_through_the_workflow(shared_data, tmp_path):
     """Norcia (42.8 N) as a user hands it over (benchmarks/bench_s2_cities.py): the 2017 RGB in
@@ -50,15 +67,7 @@ def test_sentinel2_city_in_lon_lat_registers_through_the_workflow(shared_data, t
     ``gsd_m: 20``. At square pixels every source fails (rift's best log10 NFA +2.3); at the
     map's ground aspect (0.74) rift registers it, within 3 map px of the geotransforms' truth.
     Hong Kong's query on the same map ends ``not_found``."""
-    if not (shared_data / "swir_dates" / "oscd_dev" / "norcia").is_dir():
-        pytest.skip("OSCD Norcia absent")
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    import bench_s2_cities as bs
-
-    case = bs.make_case("norcia", False, 211.0, tmp_path / "norcia")
-    other = bs.make_case("hongkong", False, 37.0, tmp_path / "hongkong")["query"]
-    other.pop("truth")
-    res = bs.run_workflow(tmp_path / "run", case["map"], {"q": case["query"], "other": other})
+    res = _city_run(shared_data, tmp_path, "norcia", 211.0, "hongkong", 37.0)
     q = res["q"]
     assert q["status"] == "registered", q
     assert q["median_px"] < 3.0, q
@@ -73,15 +82,7 @@ def test_weak_chance_pose_of_another_city_is_refused_by_its_structure(shared_dat
     lays it there by chance (log10 NFA -3.6, 5 of 28 cells; confirmed, polished) and the
     structure agrees at z 2.41, above ``structure_z_min`` 2.2 but below the 2.75 a weak pose
     (log10 NFA above -6) needs: ``not_found``."""
-    if not (shared_data / "swir_dates" / "oscd_dev" / "abudhabi").is_dir():
-        pytest.skip("OSCD Abu Dhabi absent")
-    sys.path.insert(0, str(REPO / "benchmarks"))
-    import bench_s2_cities as bs
-
-    case = bs.make_case("abudhabi", False, 46.29, tmp_path / "abudhabi")
-    other = bs.make_case("norcia", False, 53.25339044788414, tmp_path / "norcia")["query"]
-    other.pop("truth")
-    res = bs.run_workflow(tmp_path / "run", case["map"], {"other": other})
+    res = _city_run(shared_data, tmp_path, "abudhabi", None, "norcia", 53.25339044788414)
     assert res["other"]["status"] == "not_found", res["other"]
     reg = json.loads((tmp_path / "run/results/queries/other/registration.json").read_text())
     rift = reg["split"]["rift"]
