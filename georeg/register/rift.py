@@ -1123,7 +1123,9 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     ``register``; an accepted pose
     is refit to the orthophoto around its footprint (``polish``; rejected when a moved pose is
     better supported) and becomes one more (whole-query) part. Not run without the query's GSD, without an orthophoto,
-    or above ``max_map_px`` map pixels at that GSD (the cost grows with the map). ``key``:
+    or above ``max_map_px`` map pixels at that GSD (the cost grows with the map). A map whose
+    ``view.aspect`` is >= ``ASPECT_MIN`` from 1 is searched at that pixel aspect too, the better
+    pose kept (``_search``; ``aspects`` in the record). ``key``:
     ``rift``, or ``learned`` (``learned_source``: ``LEARNED`` under ``register.learned``).
     Returns the parts and the record."""
     import time

@@ -270,7 +270,7 @@ class MapView:
     and on disk under ``cache_dir`` when given. ``aspect``: the width / height in map units of a
     map pixel that is square on the ground, when that may differ from 1 (a lon/lat orthophoto
     whose pixels are square on the ground, not in degrees: ``georeg.map.grid.ground_aspect``);
-    the map-wide sources search it too when the square pixel fails."""
+    rift's map-wide search (``rift.source``) searches it beside the square pixel."""
 
     source: MapSource
     read_window: Any = None
