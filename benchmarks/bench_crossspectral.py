@@ -765,17 +765,24 @@ def judge(q: Query, sc_map: Scene, res: dict[str, Any]) -> dict[str, Any]:
 # ----------------------------------------------------------------------------- main
 
 
+def rotation_canvas(w: int, h: int, theta: float) -> tuple[int, int, np.ndarray]:
+    """A ``w`` x ``h`` image rotated by ``theta`` degrees onto a canvas that holds it whole: the
+    canvas width and height and the 2 x 3 canvas px -> image px (about the centres; for
+    ``cv2.warpAffine(..., WARP_INVERSE_MAP)``)."""
+    c, si = math.cos(math.radians(theta)), math.sin(math.radians(theta))
+    cw = int(math.ceil(abs(w * c) + abs(h * si)))
+    ch = int(math.ceil(abs(w * si) + abs(h * c)))
+    A = np.array([[c, -si], [si, c]])
+    t = np.array([(w - 1) / 2, (h - 1) / 2]) - A @ np.array([(cw - 1) / 2, (ch - 1) / 2])
+    return cw, ch, np.c_[A, t]
+
+
 def make_whole_query(sc: Scene, band: str, theta: float, i: int) -> Query:
     """One SWIR band of ``sc`` whole, at its own GSD, rotated by ``theta`` degrees onto a canvas
     that holds it (0 = nodata outside): the form of a delivered scene, not a crop."""
     src = sc.swir[band]
-    h, w = src.shape
-    c, si = math.cos(math.radians(theta)), math.sin(math.radians(theta))
-    cw = int(math.ceil(abs(w * c) + abs(h * si)))
-    ch = int(math.ceil(abs(w * si) + abs(h * c)))
-    A = np.array([[c, -si], [si, c]])  # query px -> src px about the centres
-    t = np.array([(w - 1) / 2, (h - 1) / 2]) - A @ np.array([(cw - 1) / 2, (ch - 1) / 2])
-    M = np.c_[A, t]
+    cw, ch, M = rotation_canvas(src.shape[1], src.shape[0], theta)
+    A, t = M[:, :2], M[:, 2]
     warped = cv2.warpAffine(src, M, (cw, ch), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                             borderValue=np.nan)  # fmt: skip
     u8 = _stretch(warped)

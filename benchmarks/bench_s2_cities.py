@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import glob
 import json
-import math
 import os
 import subprocess
 import sys
@@ -41,6 +40,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_crossspectral import rotation_canvas  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 OSCD = ROOT.parent / "shared" / "data" / "swir_dates" / "oscd_dev"
@@ -85,12 +87,8 @@ def make_case(city: str, reverse: bool, theta: float, out: Path) -> dict[str, An
         for i, w in enumerate((665, 560, 490), 1):
             ds.set_band_description(i, f"{w} nm")
     (b11, p11), (b12, _) = _band(city, qd, "B11"), _band(city, qd, "B12")
-    h, w = b11.shape
-    c, s = math.cos(math.radians(theta)), math.sin(math.radians(theta))
-    cw, ch = math.ceil(abs(w * c) + abs(h * s)), math.ceil(abs(w * s) + abs(h * c))
-    A = np.array([[c, -s], [s, c]])  # query px -> source px about the centres
-    off = np.array([(w - 1) / 2, (h - 1) / 2]) - A @ np.array([(cw - 1) / 2, (ch - 1) / 2])
-    M = np.c_[A, off]
+    cw, ch, M = rotation_canvas(b11.shape[1], b11.shape[0], theta)  # query px -> source px
+    A, off = M[:, :2], M[:, 2]
 
     def warp(a: np.ndarray) -> np.ndarray:
         return cv2.warpAffine(a.astype(np.float32), M, (cw, ch),

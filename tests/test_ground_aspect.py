@@ -1,7 +1,7 @@
 """A lon/lat orthophoto whose pixels are square on the ground, not in degrees (the OSCD release
 of Sentinel-2 cities: metric imagery stamped with the city's bounding box): warped to UTM it is
-stretched by cos(latitude), and the map-wide sources search that aspect too when the square
-pixel fails (``georeg.map.grid.ground_aspect``, ``MapView.aspect``)."""
+stretched by cos(latitude), and rift searches that aspect beside the square pixel, the better
+pose kept (``georeg.map.grid.ground_aspect``, ``MapView.aspect``)."""
 
 from __future__ import annotations
 

@@ -1155,7 +1155,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
         return parts, {"ran": False, "reason": why}
     t0 = time.perf_counter()
     u8 = q.u8 if q.u8.ndim == 2 else q.u8[0]
-    a = float(getattr(view, "aspect", 1.0) or 1.0)
+    a = float(view.aspect)
     # the map's pixels square in map units, and, when the map may be square on the ground
     # instead (``MapView.aspect``), at that aspect too: the better pose wins, each search's NFA
     # counting the other's rotations
