@@ -558,7 +558,9 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
     src = MapSource(mxy, mdesc, fgsd, angle=mang, scale=msize * fgsd)
     u8 = query_stack(q, spec.get("bands", 1))
     prior = None if not spec.get("prior") else location_prior(q, sc_map, float(spec["prior"]), seed)
-    res = register_query(u8, src, conf, q.gsd, [q.gsd / fgsd], seed, plain_window_reader(sc_map),
+    # ``no_gsd``: the query's GSD withheld, as a user who does not know it (the guesses searched)
+    gsd, factors = (None, conf["unknown_gsd_factors"]) if spec.get("no_gsd") else (q.gsd, [q.gsd / fgsd])
+    res = register_query(u8, src, conf, gsd, factors, seed, plain_window_reader(sc_map),
                          prior, plain_level_reader(sc_map), map_identity(sc_map))  # fmt: skip
     split = res.get("split") or {}
     wins = (split.get("small") or {}).get("windows") or []

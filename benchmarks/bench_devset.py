@@ -425,6 +425,8 @@ METHODS: dict[str, dict[str, Any]] = {
     "src_rift12": {"rift": {"rotations": 12, "max_angle_deg": 20.0}},  # v3: 30 deg steps
     # the workflow with the rift source enabled (fuse.SOURCES: runs when nothing else accepted)
     "wf_rift": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": False}}, "bands": 1},
+    "wf_rift_nogsd": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": False}}, "bands": 1,
+                      "no_gsd": True},
     # + the learned source (XFeat in rift's search, fuse.SOURCES after rift; session 27)
     "wf_learned": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": True}}, "bands": 1},
     "src_xfeat": {"rift": {"kind": "xfeat", "rotations": 12, "max_angle_deg": 16.0, "patch": 16}},

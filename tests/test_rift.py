@@ -504,3 +504,32 @@ def test_pucallpa_lookalike_meander_refused_by_the_structure_check(shared_data):
         assert res["accepted"] is registered, name
         if registered:
             assert bx.judge(q, sc, res)["error_px"] <= 5.0
+
+
+def test_source_searches_each_gsd_guess_when_the_gsd_is_unknown():
+    """A query without a GSD (``QueryInput.gsd`` None): rift searches each guess of the feature
+    search (``unknown_gsd_factors``, as ``q.factors``), keeps the better pose and counts every
+    guess's rotations; a query at half the map's GSD is found at the guess 0.5, not at 1."""
+    from georeg.register.search import MapSource, MapView, QueryInput
+
+    m = _scene(1)
+    A = cv2.getRotationMatrix2D((170.0, 150.0), 25.0, 2.0)  # 2 query px a map px
+    A[:, 2] += (119.5 - 170.0, 119.5 - 150.0)
+    q = np.clip(cv2.warpAffine(m, A, (240, 240), flags=cv2.INTER_LINEAR), 1, 255).astype(np.uint8)
+    g = 2.0
+    G = np.array([[g, 0, 0], [0, -g, 0], [0, 0, 1.0]])
+    src = MapSource(np.array([[0.0, -(m.shape[0] - 1) * g], [(m.shape[1] - 1) * g, 0.0]]),
+                    np.zeros((2, 128), np.float32), g)  # fmt: skip
+    view = MapView(src, lambda b: (m.astype(np.float64), G))
+    conf = {"acceptance": _acc(), "rift": {"enabled": True}}
+    parts, rec = rift.source(QueryInput(q, None, None, [1.0, 0.5], 0), view, [], conf)  # type: ignore[arg-type]
+    n = rift.DEFAULTS["rotations"]
+    assert rec["accepted"] and rec["gsd"] == pytest.approx(0.5 * g)
+    assert [x["gsd"] for x in rec["gsd_guesses"]] == [g, 0.5 * g]
+    assert rec["candidates"] == 2 * n and rec["tests_before"] == n  # each counts the other's
+    truth = G @ np.linalg.inv(np.vstack([A, [0, 0, 1.0]]))
+    pts = np.array([[0, 0], [239, 0], [0, 239], [239, 239]], float)
+    err = matching.apply_h(np.array(parts[0]["homography"]), pts) - matching.apply_h(truth, pts)
+    assert np.abs(err).max() < 2.0 * g
+    _, one = rift.source(QueryInput(q, None, None, [1.0], 0), view, [], conf)  # type: ignore[arg-type]
+    assert not one["accepted"] and "gsd_guesses" not in one

@@ -1091,17 +1091,19 @@ def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g:
     return got
 
 
-def _search(q: Any, u8: np.ndarray, view: Any, b: tuple[float, ...], g: float, c: dict[str, Any],
+def _search(gsd: float, u8: np.ndarray, view: Any, b: tuple[float, ...], c: dict[str, Any],
             conf: dict[str, Any], aspect: float, tests_before: int,
             ) -> tuple[dict[str, Any], np.ndarray | None, dict[str, Any] | None]:  # fmt: skip
-    """One ``register`` of the query against the map's features on the working grid of pixel
-    ``aspect``: the result, its pose (query px -> map) and record (None: map unreadable)."""
+    """One ``register`` of the query, taken at ``gsd`` map units a pixel, against the map's
+    features on the working grid of pixel ``aspect``: the result, its pose (query px -> map) and
+    record (None: map unreadable)."""
+    g = working_gsd(gsd, view, c)
     got = cached_map_features(view, b, g, c, aspect)
     if got is None:
         return {}, None, None
     mxy, md, area, G = got
-    r = register(u8, None, float(q.gsd) / g, conf.get("acceptance") or {}, c, map_feats=(mxy, md),
-                 gsd_m=float(q.gsd), map_gsd_m=g, tests_before=tests_before, area=area)  # fmt: skip
+    r = register(u8, None, gsd / g, conf.get("acceptance") or {}, c, map_feats=(mxy, md),
+                 gsd_m=gsd, map_gsd_m=g, tests_before=tests_before, area=area)  # fmt: skip
     H = None if r["H"] is None else G @ r["H"]
     rec = {"ran": True, "candidates": int(r["tests"]), "accepted": r["accepted"],
            "tests_before": tests_before, "inliers": r["inliers"],
@@ -1111,8 +1113,16 @@ def _search(q: Any, u8: np.ndarray, view: Any, b: tuple[float, ...], g: float, c
            "per_rotation": [[a, round(v, 2) if math.isfinite(v) else None] for a, v in r["per_rotation"]],
            "map_keypoints": len(mxy), "nearest_k": n_candidates(len(md), c), "confirm": r.get("confirm"), "rescue": r.get("rescue"),
            "reangle": r.get("reangle"), "reason": f"fewer than min_cells ({c['min_cells']}) matched cells at every rotation"
-           if r["decision"] is None else r["decision"].get("reason", ""), "aspect": round(aspect, 4)}  # fmt: skip
+           if r["decision"] is None else r["decision"].get("reason", ""), "aspect": round(aspect, 4),
+           "gsd": gsd}  # fmt: skip
     return r, H, rec
+
+
+def working_gsd(gsd: float, view: Any, c: dict[str, Any]) -> float:
+    """The map's working GSD for a query of ``gsd``: the map's feature GSD (the query resampled to
+    it), or the query's own when that is more than ``max_upsample`` coarser (the map shrunk)."""
+    g = float(view.source.gsd_m)
+    return float(gsd) if float(gsd) > c["max_upsample"] * g else g
 
 
 def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
@@ -1143,12 +1153,11 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     elif not on:
         return parts, {"ran": False, "reason": "disabled"}
     c = rift_conf(rc)
-    why = ("the query's GSD is unknown" if q.gsd is None else
-           "no orthophoto" if view.read_window is None else "")  # fmt: skip
+    # the query's GSD, or, unknown, each guess of the feature search (``unknown_gsd_factors``)
+    gsds = [float(q.gsd)] if q.gsd is not None else [float(f) * float(view.source.gsd_m) for f in q.factors]
+    why = "no orthophoto" if view.read_window is None else ""
     b = tuple(float(v) for v in view.source.bounds)
-    g = float(view.source.gsd_m)  # the query resampled to the map's feature GSD (or level) ...
-    if float(q.gsd or 0.0) > c["max_upsample"] * g:  # ... unless that enlarges it much: the map
-        g = float(q.gsd)  # shrunk to the query's GSD instead
+    g = min(working_gsd(v, view, c) for v in gsds)
     if not why and (b[2] - b[0]) * (b[3] - b[1]) / g**2 > c["max_map_px"]:
         why = f"map larger than max_map_px ({c['max_map_px']:.0f}) at the query's GSD"
     if why:
@@ -1157,22 +1166,27 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     u8 = q.u8 if q.u8.ndim == 2 else q.u8[0]
     a = float(view.aspect)
     # the map's pixels square in map units, and, when the map may be square on the ground
-    # instead (``MapView.aspect``), at that aspect too: the better pose wins, each search's NFA
-    # counting the other's rotations
+    # instead (``MapView.aspect``), at that aspect too; each GSD guess when it is unknown: the
+    # better pose wins, each search's NFA counting the others' rotations
     aspects = [1.0] + ([a] if abs(a - 1.0) >= ASPECT_MIN else [])
-    other = int(c["rotations"]) * (len(aspects) - 1)
+    runs = [(v, k) for v in gsds for k in aspects]
+    other = int(c["rotations"]) * (len(runs) - 1)
     passes = []
-    for k in aspects:
-        got = _search(q, u8, view, b, g, c, conf, k, int(q.tests_before) + other)
+    for v, k in runs:
+        got = _search(v, u8, view, b, c, conf, k, int(q.tests_before) + other)
         if got[2] is not None:
             passes.append(got)
     if not passes:
         return parts, {"ran": False, "reason": "orthophoto window unreadable"}
     r, H, rec = max(passes, key=lambda p: (bool(p[0]["accepted"]), -p[0]["log10_nfa"]))
+    if len(aspects) > 1:
+        rec = {**rec, "aspects": [{k: p[2][k] for k in ("aspect", "gsd", "candidates", "accepted", "log10_nfa",
+                                                        "inliers", "reason")} for p in passes]}  # fmt: skip
+    if len(gsds) > 1:
+        rec = {**rec, "gsd_guesses": [{k: p[2][k] for k in ("gsd", "aspect", "candidates", "accepted", "log10_nfa",
+                                                            "inliers", "reason")} for p in passes]}  # fmt: skip
     if len(passes) > 1:
-        rec = {**rec, "candidates": sum(p[2]["candidates"] for p in passes),
-               "aspects": [{k: p[2][k] for k in ("aspect", "candidates", "accepted", "log10_nfa", "inliers", "reason")}
-                           for p in passes]}  # fmt: skip
+        rec = {**rec, "candidates": sum(p[2]["candidates"] for p in passes)}
     rec["seconds"] = time.perf_counter() - t0
     if r["accepted"] and H is not None and c["polish"]:
         H, rec["polish"] = polish(u8, H, view.read_window, conf)
@@ -1184,7 +1198,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
         # a weak pose (log10 NFA above the strip rule's line) needs more of the structure
         weak = r["log10_nfa"] > float(c["log_nfa_max"]) - float(c["null_margin"])
         need = zmin * (STRUCTURE_WEAK if weak else 1.0)
-        rec["structure"] = st = structure_check(u8, H, view.read_window, float(q.gsd), c, q.seed,
+        rec["structure"] = st = structure_check(u8, H, view.read_window, rec["gsd"], c, q.seed,
                                                 z_enough=2 * zmin)  # fmt: skip
         if st is not None and st["z"] < need:
             r["accepted"] = rec["accepted"] = False
