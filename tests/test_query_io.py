@@ -253,3 +253,35 @@ def test_enmap_geotiff(shared_data):
     assert c.count == 224 and c.wavelengths_nm.min() == pytest.approx(418.24)
     band, mask, info = select_band(c, "1.65um")
     assert abs(info["wavelength_nm"] - 1650) < 10 and 0.1 < mask.mean() < 0.9
+
+
+def test_gsd_from_the_files_own_georeferencing(tmp_path):
+    """Without ``gsd_m`` the query's GSD is the pixel size its file states (a GeoTIFF's
+    geotransform, in metres or feet; on the ground for longitude/latitude; an ENVI ``map info``),
+    recorded as ``gsd_source: geotransform``; a given ``gsd_m`` wins; a plain image has none."""
+    from georeg.io.query import georeferenced_gsd_m
+
+    a = np.full((1, 20, 30), 50, np.uint16)
+
+    def tif(name: str, crs: str | None, t: rasterio.Affine) -> Path:
+        p = tmp_path / name
+        with rasterio.open(p, "w", driver="GTiff", width=30, height=20, count=1, dtype="uint16",
+                           **({"crs": crs, "transform": t} if crs else {})) as d:  # fmt: skip
+            d.write(a)
+        return p
+
+    utm = tif("utm.tif", "EPSG:32633", rasterio.Affine(30.0, 0, 500000, 0, -30.0, 5800000))
+    assert georeferenced_gsd_m(open_query(utm)) == pytest.approx(30.0)
+    feet = tif("ft.tif", "EPSG:2229", rasterio.Affine(10.0, 0, 6e6, 0, -10.0, 2e6))  # US survey feet
+    assert georeferenced_gsd_m(open_query(feet)) == pytest.approx(3.048, abs=1e-3)
+    deg = 1e-4  # square degrees at 60 N: 5.6 x 11.1 m on the ground
+    geo = tif("geo.tif", "EPSG:4326", rasterio.Affine(deg, 0, 10.0, 0, -deg, 60.001))
+    assert georeferenced_gsd_m(open_query(geo)) == pytest.approx(7.87, abs=0.05)
+    assert georeferenced_gsd_m(open_query(tif("plain.tif", None, rasterio.Affine.identity()))) is None
+    hdr = write_envi(tmp_path / "env", cube_of("u1"), extra="map info = {UTM, 1.000, 1.000, 660585.0, "
+                     "3551295.0, 2.5e+001, 2.5e+001, 50, North, WGS-84, units=Meters}\n")  # fmt: skip
+    assert georeferenced_gsd_m(open_query(hdr)) == pytest.approx(25.0)
+    meta = write_query_band(str(utm), "auto", None, tmp_path / "b.tif", tmp_path / "b.json")
+    assert meta["gsd_m"] == pytest.approx(30.0) and meta["gsd_source"] == "geotransform"
+    meta = write_query_band(str(utm), "auto", 28.0, tmp_path / "c.tif", tmp_path / "c.json")
+    assert meta["gsd_m"] == 28.0 and meta["gsd_source"] == "config"

@@ -64,3 +64,49 @@ def test_srif_infrared_query_without_gsd_registers_through_the_workflow(shared_d
     col0 = REFS.index(11) * (256 + GAP)
     want = np.c_[ORIGIN[0] + col0 + ref_px[:, 0] + 0.5, ORIGIN[1] - ref_px[:, 1] - 0.5]
     assert np.median(np.linalg.norm(xy - want, axis=1)) < 8.0
+
+
+@pytest.mark.slow
+def test_enmap_cube_without_gsd_takes_its_geotransforms_pixel_size(shared_data, tmp_path):
+    """The EnMAP Potsdam cube as released (UTM, 30 m pixels) without ``gsd_m``, against a 3.6 m
+    RGB map of part of it (its own 665/560/490 nm bands, bicubic): the query's GSD is read from
+    its geotransform (its position is not used), so the scale gap's level search runs;
+    registered within 5 map px of the truth (the cube's geotransform). With the guesses of an
+    unknown GSD (3.6, 1.8, 0.9 m) it ended ``not_found``."""
+    import cv2
+
+    cube = shared_data / "enmap_potsdam" / "enmap_potsdam_mosaic_subset.tif"
+    if not cube.exists():
+        pytest.skip("EnMAP Potsdam absent")
+    sys.path.insert(0, str(REPO / "benchmarks"))
+    import bench_s2_cities as bs
+
+    r0, r1, c0, c1, gm = 100, 180, 40, 140, 3.6  # the map: 80 x 100 EnMAP px of the cube's 192 x 160
+    with rasterio.open(cube) as ds:
+        wl = np.array([float(d.split()[0]) for d in ds.descriptions])
+        T = ds.transform
+        rgb = np.stack([ds.read(int(np.argmin(abs(wl - w))) + 1)[r0:r1, c0:c1] for w in (665, 560, 490)])
+    valid = np.isfinite(rgb).all(0)
+    lo, hi = np.nanpercentile(rgb[:, valid], [1, 99])
+    u8 = np.where(valid, np.clip(1 + 254 * (rgb - lo) / (hi - lo), 1, 255), 0).astype(np.float32)
+    w, h = round((c1 - c0) * 30 / gm), round((r1 - r0) * 30 / gm)
+    up = np.stack([cv2.resize(b, (w, h), interpolation=cv2.INTER_CUBIC) for b in u8])
+    up = np.where(cv2.resize(valid.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0,
+                  np.clip(up, 1, 255), 0).astype(np.uint8)  # fmt: skip
+    ortho = tmp_path / "map.tif"
+    with rasterio.open(ortho, "w", driver="GTiff", width=w, height=h, count=3, dtype="uint8", nodata=0,
+                       crs="EPSG:32633", transform=rasterio.Affine(gm, 0, T.c + c0 * 30.0, 0, -gm, T.f - r0 * 30.0)) as d:  # fmt: skip
+        d.write(up)
+    res = bs.run_workflow(tmp_path / "run", {"orthophoto": str(ortho), "lidar": []}, {"enmap": {"image": str(cube)}})
+    assert res["enmap"]["status"] == "registered", res["enmap"]
+    run = tmp_path / "run/results/queries/enmap"
+    assert json.loads((run / "band.json").read_text())["gsd_source"] == "geotransform"
+    reg = json.loads((run / "registration.json").read_text())
+    assert reg["level"]["gsd"] == pytest.approx(30.0)
+    uu, vv = np.meshgrid(np.arange(5, 160, 10.0), np.arange(5, 192, 10.0))
+    inside = (vv >= r0 + 5) & (vv < r1 - 5) & (uu >= c0 + 5) & (uu < c1 - 5)  # over the map
+    q = np.c_[uu[inside], vv[inside], np.ones(inside.sum())]
+    xy = q @ np.array(reg["homography"]).T
+    xy = xy[:, :2] / xy[:, 2:]
+    want = np.c_[T.c + (q[:, 0] + 0.5) * 30.0, T.f - (q[:, 1] + 0.5) * 30.0]
+    assert np.median(np.linalg.norm(xy - want, axis=1)) / gm < 5.0

@@ -136,6 +136,39 @@ class RasterCube(Cube):
                 return src.read(i + 1).astype(np.float32)
 
 
+def georeferenced_gsd_m(cube: Cube) -> float | None:
+    """The ground sample distance (m) the query file's own georeferencing states (a GeoTIFF's
+    geotransform, an ENVI header's ``map info``), or None when it has none. Only the pixel size is
+    taken, never the position. Projected CRS: the pixel's side in metres (the geometric mean of
+    its width and height); longitude/latitude: the same on the ground at the image's centre."""
+    import rasterio
+
+    path = getattr(cube, "data_path", None) or cube.path
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", rasterio.errors.NotGeoreferencedWarning)
+            with rasterio.open(path) as src:
+                crs, t, w, h = src.crs, src.transform, src.width, src.height
+    except rasterio.errors.RasterioError:
+        return None
+    if crs is None or t.is_identity:
+        return None
+    if crs.is_projected:
+        unit = crs.linear_units_factor[1] if crs.linear_units_factor else 1.0
+        return float(np.sqrt(abs(t.a * t.e - t.b * t.d)) * unit)
+    if crs.is_geographic:
+        from pyproj import Geod
+
+        lon, lat = t * (w / 2.0, h / 2.0)
+        lon1, lat1 = t * (w / 2.0 + 1.0, h / 2.0)
+        lon2, lat2 = t * (w / 2.0, h / 2.0 + 1.0)
+        geod = Geod(ellps="WGS84")
+        dx = geod.inv(lon, lat, lon1, lat1)[2]
+        dy = geod.inv(lon, lat, lon2, lat2)[2]
+        return float(np.sqrt(dx * dy)) if dx > 0 and dy > 0 else None
+    return None
+
+
 # ----------------------------------------------------------------------------- ENVI header
 
 

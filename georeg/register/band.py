@@ -277,7 +277,7 @@ def write_query_band(
 
     from georeg.io.atomic import atomic_path, write_json
     from georeg.io.prior import check_prior
-    from georeg.io.query import open_query
+    from georeg.io.query import georeferenced_gsd_m, open_query
 
     t0 = time.perf_counter()
     try:
@@ -285,6 +285,13 @@ def write_query_band(
     except ValueError as exc:
         raise InputError(image, f"queries prior: {exc}", "see config/README.md") from None
     cube = open_query(image)
+    gsd_source = "config" if gsd_m else None
+    if not gsd_m:  # not given: the pixel size the file's own georeferencing states, if any
+        gsd_m = georeferenced_gsd_m(cube)
+        gsd_source = "geotransform" if gsd_m else None
+        if gsd_m:
+            log.info("%s: gsd_m not given; %.3g m from the file's georeferencing (its position is "
+                     "not used)", image, gsd_m)  # fmt: skip
     band, mask, info = select_band(cube, band_spec)
     if not mask.any():  # before writing anything: a failed step leaves no output
         if not np.isfinite(band).any():
@@ -333,6 +340,7 @@ def write_query_band(
         "bands_spec": bands_spec if isinstance(bands_spec, str) else list(bands_spec),
         "pooled_bands": pooled,
         "gsd_m": gsd_m,
+        "gsd_source": gsd_source,  # config | geotransform (not given: the file's) | None (unknown)
         "prior": prior,
         "stretch": {"percentiles": list(percentiles), **stretch},
         "valid_fraction": valid_fraction,
