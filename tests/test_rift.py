@@ -533,3 +533,26 @@ def test_source_searches_each_gsd_guess_when_the_gsd_is_unknown():
     assert np.abs(err).max() < 2.0 * g
     _, one = rift.source(QueryInput(q, None, None, [1.0], 0), view, [], conf)  # type: ignore[arg-type]
     assert not one["accepted"] and "gsd_guesses" not in one
+
+
+def test_pucallpa_chance_pose_at_a_guessed_gsd_needs_more_structure(shared_data):
+    """Landsat Pucallpa (bench_devset, seed 11, checking half), the GSD withheld
+    (``wf_rift_nogsd``): the 1995 SWIR crop (rescaled x1.27) on the 2005 map with its place
+    blanked. At the guess 90 m rift finds a pose elsewhere at log10 NFA -13.5, confirmed and
+    polished, whose structure reads z 2.7: above ``structure_z_min`` (2.2) but below the
+    ``STRUCTURE_GUESSED`` x 2.2 a pose at a guessed GSD needs: ``not_found``."""
+    if not (shared_data / "swir_dates" / "landsat_pucallpa" / "2005.tif").exists():
+        pytest.skip("Landsat Pucallpa absent")
+    import sys
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_crossspectral as bx
+    import bench_devset as bd
+
+    q, sc = _pucallpa("puc_1995_on_2005_0_1.6um_blanked")
+    res = bx.run_pipeline(q, sc, bd.METHODS["wf_rift_nogsd"], bx.query_seed(11, q.name))
+    rec = res["rift"]
+    assert not res["accepted"], rec
+    assert rec["gsd"] == pytest.approx(90.0) and len(rec["gsd_guesses"]) == 3
+    assert rec["log10_nfa"] < -6 and "a guessed GSD" in rec["reason"], rec["reason"]
+    assert rift.DEFAULTS["structure_z_min"] <= rec["structure"]["z"] < rift.STRUCTURE_GUESSED * rift.DEFAULTS["structure_z_min"]

@@ -159,6 +159,12 @@ CACHE_VERSION = 2
 #: polished) passed at z 2.41; the weak true poses on record read >= 2.93 (Pucallpa's visible
 #: control, checking half; SWIR >= 3.47, SRIF >= 6.8). benchmarks/bench_s2_cities.py, session 30
 STRUCTURE_WEAK = 1.25
+#: a pose found at a guessed GSD (the query's unknown: ``unknown_gsd_factors``) needs z >= this x
+#: ``structure_z_min``: with the GSD withheld on Landsat Pucallpa (queries rescaled x0.75-1.3, so
+#: the guesses are off) four chance or off-scale poses passed every other test at z 2.39-3.3 (one
+#: at log10 NFA -13.5 on a blanked map); the true poses found at a guess read z >= 5.26 there and
+#: on SRIF, one aside (SRIF oi 191 at 2.34). Chosen on both halves: session 31
+STRUCTURE_GUESSED = 2.0
 #: a MapView.aspect this far from 1 gets its own search beside the square pixels; nearer, the
 #: square pixel holds (Abu Dhabi, Hong Kong at 0.92-0.93: 4 of 4 by the feature search) and a second
 #: search only adds chances (Norcia's query on Hong Kong's map: rift at 0.93, log10 NFA -3.7,
@@ -1197,14 +1203,17 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     if r["accepted"] and H is not None and zmin > 0:
         # a weak pose (log10 NFA above the strip rule's line) needs more of the structure
         weak = r["log10_nfa"] > float(c["log_nfa_max"]) - float(c["null_margin"])
-        need = zmin * (STRUCTURE_WEAK if weak else 1.0)
+        guessed = q.gsd is None  # and so is the pose's scale
+        k = max(STRUCTURE_WEAK if weak else 1.0, STRUCTURE_GUESSED if guessed else 1.0)
+        need = zmin * k
         rec["structure"] = st = structure_check(u8, H, view.read_window, rec["gsd"], c, q.seed,
-                                                z_enough=2 * zmin)  # fmt: skip
+                                                z_enough=2 * zmin * (STRUCTURE_GUESSED if guessed else 1.0))  # fmt: skip
         if st is not None and st["z"] < need:
             r["accepted"] = rec["accepted"] = False
+            why = [w for w, on in (("a weak pose", weak), ("a guessed GSD", guessed)) if on]
             rec["reason"] = (f"the orthophoto's structure agrees with the query's at the pose no "
                              f"better than at random poses nearby (z {st['z']:.1f} < {need:g}"
-                             f"{', a weak pose' if weak else ''}): a look-alike")  # fmt: skip
+                             f"{''.join(', ' + w for w in why)}): a look-alike")  # fmt: skip
     if r["accepted"] and H is not None:
         part = {"accepted": True, "homography": H.tolist(), "log10_nfa": r["log10_nfa"],
                 "inliers": r["inliers"], "matches": r["matches"], "residual_px": None,
