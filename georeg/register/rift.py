@@ -1138,8 +1138,10 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     feature GSD, or the query's when it is > ``max_upsample`` coarser: ``read_map_features``),
     ``register``; an accepted pose
     is refit to the orthophoto around its footprint (``polish``; rejected when a moved pose is
-    better supported) and becomes one more (whole-query) part. Not run without the query's GSD, without an orthophoto,
-    or above ``max_map_px`` map pixels at that GSD (the cost grows with the map). A map whose
+    better supported) and becomes one more (whole-query) part. A query without a GSD is searched
+    at each guess of ``q.factors`` (``unknown_gsd_factors``), and a pose found at a guess needs
+    ``STRUCTURE_GUESSED`` x the structure. Not run without an orthophoto, or above ``max_map_px``
+    map pixels at the query's GSD (the cost grows with the map). A map whose
     ``view.aspect`` is >= ``ASPECT_MIN`` from 1 is searched at that pixel aspect too, the better
     pose kept (``_search``; ``aspects`` in the record). ``key``:
     ``rift``, or ``learned`` (``learned_source``: ``LEARNED`` under ``register.learned``).
@@ -1204,8 +1206,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
         # a weak pose (log10 NFA above the strip rule's line) needs more of the structure
         weak = r["log10_nfa"] > float(c["log_nfa_max"]) - float(c["null_margin"])
         guessed = q.gsd is None  # and so is the pose's scale
-        k = max(STRUCTURE_WEAK if weak else 1.0, STRUCTURE_GUESSED if guessed else 1.0)
-        need = zmin * k
+        need = zmin * max(STRUCTURE_WEAK if weak else 1.0, STRUCTURE_GUESSED if guessed else 1.0)
         rec["structure"] = st = structure_check(u8, H, view.read_window, rec["gsd"], c, q.seed,
                                                 z_enough=2 * zmin * (STRUCTURE_GUESSED if guessed else 1.0))  # fmt: skip
         if st is not None and st["z"] < need:
