@@ -429,6 +429,8 @@ METHODS: dict[str, dict[str, Any]] = {
                       "no_gsd": True},
     # + the learned source (XFeat in rift's search, fuse.SOURCES after rift; session 27)
     "wf_learned": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": True}}, "bands": 1},
+    "wf_learned_nogsd": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": True}}, "bands": 1,
+                         "no_gsd": True},
     "src_xfeat": {"rift": {"kind": "xfeat", "rotations": 12, "max_angle_deg": 16.0, "patch": 16}},
     "wf_rift_64m": {"pipeline": {"rift": {"enabled": True, "max_map_px": 64_000_000}}, "bands": 1},
     "wf_rift_refined": {"pipeline": {"rift": {"enabled": True}}, "bands": 1,
