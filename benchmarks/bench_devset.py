@@ -57,7 +57,9 @@ hypothesis sources of issue 34 item 3 (``src_*``: CFOG structure, XFeat; commit 
 measured here and not kept (docs/experiments/2026-11-26-devset.md). ``src_rift``: the RIFT-style
 phase-congruency source alone (georeg.register.rift.register on the benchmark's arrays, the map's
 features built once per map); ``src_rift12``: the same with 12 rotations of 30 deg (measured, not
-kept); ``wf_rift``: the workflow with ``register.rift.enabled`` (docs/experiments/2026-11-26-rift.md).
+kept); ``wf_rift``: the workflow with ``register.rift.enabled`` (docs/experiments/2026-11-26-rift.md);
+``wf_rift_nogsd`` / ``wf_learned_nogsd``: ``wf_rift`` / ``wf_learned`` with the query's GSD withheld
+(the ``unknown_gsd_factors`` guesses searched; session 31).
 The record says which methods ran (``sources`` in the json).
 """
 

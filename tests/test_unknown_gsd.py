@@ -1,7 +1,9 @@
-"""A query whose GSD the user does not know (no ``gsd_m``), through ``snakemake``: SRIF
+"""Queries without ``gsd_m``, through ``snakemake``. A plain JPEG states no pixel size: SRIF
 optical-infrared references laid side by side in one geo-referenced map, the published query
-JPEG as it is. The feature search finds nothing across the spectral gap; rift searches each
-guess of ``unknown_gsd_factors`` (``georeg.register.rift.source``) and registers it."""
+JPEG as it is; the feature search finds nothing across the spectral gap, and rift searches each
+guess of ``unknown_gsd_factors`` (``georeg.register.rift.source``) and registers it. A
+georeferenced file states its pixel size: the EnMAP cube as released is taken at its 30 m
+(``georeg.io.query.georeferenced_gsd_m``)."""
 
 from __future__ import annotations
 
