@@ -157,15 +157,10 @@ def georeferenced_gsd_m(cube: Cube) -> float | None:
         unit = crs.linear_units_factor[1] if crs.linear_units_factor else 1.0
         return float(np.sqrt(abs(t.a * t.e - t.b * t.d)) * unit)
     if crs.is_geographic:
-        from pyproj import Geod
+        from georeg.io.raster import degree_pixel_ground_m
 
-        lon, lat = t * (w / 2.0, h / 2.0)
-        lon1, lat1 = t * (w / 2.0 + 1.0, h / 2.0)
-        lon2, lat2 = t * (w / 2.0, h / 2.0 + 1.0)
-        geod = Geod(ellps="WGS84")
-        dx = geod.inv(lon, lat, lon1, lat1)[2]
-        dy = geod.inv(lon, lat, lon2, lat2)[2]
-        return float(np.sqrt(dx * dy)) if dx > 0 and dy > 0 else None
+        across, along = degree_pixel_ground_m(*(t * (w / 2.0, h / 2.0)), t.a, t.e)
+        return float(np.sqrt(across * along)) if across > 0 and along > 0 else None
     return None
 
 

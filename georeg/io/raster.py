@@ -140,6 +140,18 @@ def read_masks(
         ) from exc
 
 
+def degree_pixel_ground_m(lon: float, lat: float, width_deg: float, height_deg: float) -> tuple[float, float]:
+    """The ground size (m, WGS84 geodesics) of a ``width_deg`` x ``height_deg`` pixel centred at
+    ``lon``, ``lat``: (across, along the meridian)."""
+    from pyproj import Geod
+
+    geod = Geod(ellps="WGS84")
+    a, e = abs(float(width_deg)), abs(float(height_deg))
+    across = geod.inv(lon - a / 2, lat, lon + a / 2, lat)[2]
+    along = geod.inv(lon, lat - e / 2, lon, lat + e / 2)[2]
+    return float(across), float(along)
+
+
 def same_grid(ds: DatasetReader, crs: CRS, transform: Affine, tol: float = 1e-6) -> bool:
     """True if ``ds`` shares ``crs``, pixel size and pixel alignment with ``transform``."""
     if ds.crs != crs:

@@ -29,6 +29,7 @@ from rasterio.windows import Window
 from georeg.io.atomic import atomic_path
 from georeg.io.errors import ConfigError, InputError
 from georeg.io.raster import (
+    degree_pixel_ground_m,
     on_grid,
     open_raster,
     read,
@@ -160,7 +161,7 @@ def ground_aspect(grid_path: str | os.PathLike | None) -> float:
     (``georeg.register.search.MapView.aspect``)."""
     if not grid_path or not Path(grid_path).exists():
         return 1.0
-    from pyproj import Geod, Transformer
+    from pyproj import Transformer
 
     g = json.loads(Path(grid_path).read_text())
     o = g["orthophotos"][0]
@@ -170,11 +171,8 @@ def ground_aspect(grid_path: str | os.PathLike | None) -> float:
     x0, y0, x1, y1 = o["bounds_map"]
     lon, lat = Transformer.from_crs(CRS.from_wkt(g["crs"]), "EPSG:4326", always_xy=True).transform(
         (x0 + x1) / 2, (y0 + y1) / 2)  # fmt: skip
-    a, e = abs(o["transform"][0]), abs(o["transform"][4])
-    geod = Geod(ellps="WGS84")
-    across = geod.inv(lon - a / 2, lat, lon + a / 2, lat)[2]
-    along = geod.inv(lon, lat - e / 2, lon, lat + e / 2)[2]
-    return float(across / along) if along > 0 else 1.0
+    across, along = degree_pixel_ground_m(lon, lat, o["transform"][0], o["transform"][4])
+    return across / along if along > 0 else 1.0
 
 
 def build_grid(

@@ -286,12 +286,10 @@ def write_query_band(
         raise InputError(image, f"queries prior: {exc}", "see config/README.md") from None
     cube = open_query(image)
     gsd_source = "config" if gsd_m else None
-    if not gsd_m:  # not given: the pixel size the file's own georeferencing states, if any
-        gsd_m = georeferenced_gsd_m(cube)
-        gsd_source = "geotransform" if gsd_m else None
-        if gsd_m:
-            log.info("%s: gsd_m not given; %.3g m from the file's georeferencing (its position is "
-                     "not used)", image, gsd_m)  # fmt: skip
+    if not gsd_m and (gsd_m := georeferenced_gsd_m(cube)):  # the pixel size the file states
+        gsd_source = "geotransform"
+        log.info("%s: gsd_m not given; %.3g m from the file's georeferencing (its position is "
+                 "not used)", image, gsd_m)  # fmt: skip
     band, mask, info = select_band(cube, band_spec)
     if not mask.any():  # before writing anything: a failed step leaves no output
         if not np.isfinite(band).any():

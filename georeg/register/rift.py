@@ -1187,14 +1187,12 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     if not passes:
         return parts, {"ran": False, "reason": "orthophoto window unreadable"}
     r, H, rec = max(passes, key=lambda p: (bool(p[0]["accepted"]), -p[0]["log10_nfa"]))
-    if len(aspects) > 1:
-        rec = {**rec, "aspects": [{k: p[2][k] for k in ("aspect", "gsd", "candidates", "accepted", "log10_nfa",
-                                                        "inliers", "reason")} for p in passes]}  # fmt: skip
-    if len(gsds) > 1:
-        rec = {**rec, "gsd_guesses": [{k: p[2][k] for k in ("gsd", "aspect", "candidates", "accepted", "log10_nfa",
-                                                            "inliers", "reason")} for p in passes]}  # fmt: skip
-    if len(passes) > 1:
-        rec = {**rec, "candidates": sum(p[2]["candidates"] for p in passes)}
+    if len(passes) > 1:  # every search, listed under what it varied: the aspect, the GSD guess
+        each = [{k: p[2][k] for k in ("aspect", "gsd", "candidates", "accepted", "log10_nfa", "inliers", "reason")}
+                for p in passes]  # fmt: skip
+        rec = {**rec, "candidates": sum(p[2]["candidates"] for p in passes),
+               **({"aspects": each} if len(aspects) > 1 else {}),
+               **({"gsd_guesses": each} if len(gsds) > 1 else {})}  # fmt: skip
     rec["seconds"] = time.perf_counter() - t0
     if r["accepted"] and H is not None and c["polish"]:
         H, rec["polish"] = polish(u8, H, view.read_window, conf)
