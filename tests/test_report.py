@@ -465,9 +465,9 @@ def test_sources_text_names_each_source_and_why_rift_decided_nothing() -> None:
     reg["sources"][1]["accepted"], reg["split"]["rift"]["accepted"] = True, True
     assert sources_text(reg).endswith("rift (36 tried, accepted): log10 NFA -4.7, other rotations' best -2.1, 23 cells")
     assert sources_text({}) is None
-    reg["split"]["rift"] |= {"gsd": 0.5, "gsd_guesses": [{"gsd": 1.0}, {"gsd": 0.5}, {"gsd": 0.25}]}
+    reg["split"]["rift"] |= {"gsd": 0.48, "gsd_guesses": [{"gsd": 1.1, "guess": 1.0}, {"gsd": 0.48, "guess": 0.5}]}
     assert sources_text(reg).endswith(
-        "23 cells; GSD unknown: 1, 0.5, 0.25 map units a pixel searched, this pose at 0.5")
+        "23 cells; GSD unknown: 1, 0.5 map units a pixel searched, this pose at 0.48")
     del reg["split"]["rift"]["gsd_guesses"]
     reg["second_pass"] = {"refused": "part 0's pose does not hold over the whole query",
                           "sources": ["small_windows", "cfog_null", "rift"]}  # fmt: skip

@@ -165,6 +165,13 @@ STRUCTURE_WEAK = 1.25
 #: at log10 NFA -13.5 on a blanked map); the true poses found at a guess read z >= 5.26 there and
 #: on SRIF, one aside (SRIF oi 191 at 2.34). Chosen on both halves: session 31
 STRUCTURE_GUESSED = 2.0
+#: a guessed GSD's fit is a similarity, its scale within 1 / this .. this (a rigid fit at a GSD 10 %
+#: off registered 0 of 12 SRIF optical-infrared pairs; the similarity 11-12 of 12 from 11 % coarser
+#: to 25 % finer, 4 of 12 at 25 % coarser: session 32) ...
+GUESS_SCALE = 1.3
+#: ... and the guesses are spaced by this factor, from the finest of ``unknown_gsd_factors`` to
+#: twice the coarsest (a query coarser than the map: SRIF optical-optical's scaled queries)
+GUESS_STEP = math.sqrt(2.0)
 #: a MapView.aspect this far from 1 gets its own search beside the square pixels; nearer, the
 #: square pixel holds (Abu Dhabi, Hong Kong at 0.92-0.93: 4 of 4 by the feature search) and a second
 #: search only adds chances (Norcia's query on Hong Kong's map: rift at 0.93, log10 NFA -3.7,
@@ -173,8 +180,19 @@ ASPECT_MIN = 0.1
 #: the settings the map's features depend on (the key of their cache)
 FEATURE_KEYS = ("kind", "nscale", "norient", "min_wavelength", "mult", "sigma_onf", "k", "g", "cut_off",
                 "kp_per_mpx", "max_kp", "grid", "patch", "cells", "map_window_px")  # fmt: skip
-#: the last map's features of each kind: kind -> (key, features)
-_MEMO: dict[str, tuple[str, tuple[np.ndarray, np.ndarray, float, np.ndarray]]] = {}
+#: the maps' features last used: key (kind, map, GSD, settings) -> features ...
+_MEMO: dict[str, tuple[np.ndarray, np.ndarray, float, np.ndarray]] = {}
+#: ... up to this many bytes, the oldest dropped first (a query without a GSD searches the map at
+#: up to two working GSDs: ``gsd_guesses``, ``max_upsample``)
+MEMO_BYTES = 1 << 30
+
+
+def _remember(key: str, got: tuple[np.ndarray, np.ndarray, float, np.ndarray]) -> None:
+    """Keep ``got`` in ``_MEMO`` under ``key``, dropping the oldest beyond ``MEMO_BYTES``."""
+    _MEMO.pop(key, None)
+    _MEMO[key] = got
+    while len(_MEMO) > 1 and sum(v[0].nbytes + v[1].nbytes for v in _MEMO.values()) > MEMO_BYTES:
+        _MEMO.pop(next(iter(_MEMO)))
 
 
 def rift_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
@@ -487,33 +505,40 @@ def similarity_lsq(q: np.ndarray, m: np.ndarray, with_scale: bool = True) -> np.
     return H
 
 
-def refit(H: np.ndarray, q: np.ndarray, m: np.ndarray, tol_px: float, rounds: int = 3) -> np.ndarray:
-    """Least-squares rigid fit on every (unthinned) match within ``tol_px`` of H, iterated; the
-    decision was made on the thinned matches, this only sharpens the pose."""
+def refit(H: np.ndarray, q: np.ndarray, m: np.ndarray, tol_px: float, rounds: int = 3,
+          with_scale: bool = False) -> np.ndarray:  # fmt: skip
+    """Least-squares rigid (``with_scale``: similarity) fit on every (unthinned) match within
+    ``tol_px`` of H, iterated; the decision was made on the thinned matches, this only sharpens
+    the pose."""
     for _ in range(rounds):
         res = np.linalg.norm((np.c_[q, np.ones(len(q))] @ H.T)[:, :2] - m, axis=1)
         sel = res <= tol_px
         if sel.sum() < 3:
             break
-        H = similarity_lsq(q[sel], m[sel], with_scale=False)
+        H = similarity_lsq(q[sel], m[sel], with_scale=with_scale)
     return H
 
 
-def rigid_ransac(q: np.ndarray, m: np.ndarray, tol_px: float, max_angle_deg: float) -> np.ndarray | None:
+def rigid_ransac(q: np.ndarray, m: np.ndarray, tol_px: float, max_angle_deg: float,
+                 max_scale: float = 1.0) -> np.ndarray | None:  # fmt: skip
     """Exhaustive 2-point search for a rotation + translation q -> m (scale 1, rotation within
-    ``max_angle_deg``): every pair of matches is a hypothesis; the one with most matches within
+    ``max_angle_deg``; ``max_scale`` > 1: a similarity, its scale within 1 / max_scale ..
+    max_scale): every pair of matches is a hypothesis; the one with most matches within
     ``tol_px`` (then the smallest sum of their residuals) wins. Deterministic, vectorised."""
     n = len(q)
     i, j = np.triu_indices(n, 1)
     dq, dm = q[j] - q[i], m[j] - m[i]
     lq, lm = np.linalg.norm(dq, axis=1), np.linalg.norm(dm, axis=1)
     ang = np.arctan2(dq[:, 0] * dm[:, 1] - dq[:, 1] * dm[:, 0], (dq * dm).sum(1))
-    ok = (lq > 4 * tol_px) & (np.abs(lm / np.maximum(lq, 1e-9) - 1) < 0.2)
+    ratio = lm / np.maximum(lq, 1e-9)
+    ok = (lq > 4 * tol_px) & ((np.abs(ratio - 1) < 0.2) if max_scale <= 1 else
+                              (ratio < max_scale) & (ratio > 1 / max_scale))  # fmt: skip
     ok &= np.abs(ang) <= math.radians(max_angle_deg)
     if not ok.any():
         return None
     i, j, ang = i[ok], j[ok], ang[ok]
-    cs, sn = np.cos(ang), np.sin(ang)
+    sc = ratio[ok] if max_scale > 1 else 1.0
+    cs, sn = sc * np.cos(ang), sc * np.sin(ang)
     cq, cm = (q[i] + q[j]) / 2, (m[i] + m[j]) / 2
     tx = cm[:, 0] - (cs * cq[:, 0] - sn * cq[:, 1])
     ty = cm[:, 1] - (sn * cq[:, 0] + cs * cq[:, 1])
@@ -590,6 +615,7 @@ def register(
     map_gsd_m: float = 1.0,
     tests_before: int = 0,
     area: float | None = None,
+    max_scale: float = 1.0,
 ) -> dict[str, Any]:
     """The query (uint8, 0 = nodata) against the map (uint8, 0 = nodata): ``scale`` = map px per
     query px (the known GSD ratio); ``map_feats`` / ``area``: the map's features and valid pixels
@@ -602,7 +628,8 @@ def register(
     >= ``NULL_FAR_DEG`` away; accepted only ``null_margin`` decades below it), ``confirm`` (the
     accepted pose's guided re-match), ``rescue`` (every rotation's re-match in the cells its fit
     did not use: the pose accepted when nothing else is, ``rescue``) and ``decision``.
-    A rotation with fewer than ``min_cells`` matched cells is not scored."""
+    A rotation with fewer than ``min_cells`` matched cells is not scored. ``max_scale`` > 1: the
+    fit is a similarity, its scale within 1 / max_scale .. max_scale (a guessed GSD)."""
     from georeg.register import acceptance
 
     c = rift_conf(conf)
@@ -650,7 +677,7 @@ def register(
         top = slice(None)  # hypotheses from the most similar matches only: O(n^2) pairs x n
         if len(hyp) > c["max_hypothesis_matches"]:
             top = np.sort(np.argsort(-hsim)[: int(c["max_hypothesis_matches"])])
-        Hc = rigid_ransac(qxy[hyp[top, 0]], mxy[hyp[top, 1]], c["reproj_px"], c["max_angle_deg"])
+        Hc = rigid_ransac(qxy[hyp[top, 0]], mxy[hyp[top, 1]], c["reproj_px"], c["max_angle_deg"], max_scale)
         if Hc is None:
             continue
         Ainv = np.linalg.inv(A)
@@ -670,7 +697,7 @@ def register(
         key = (bool(dec["accepted"]), -lnfa)
         better = best["decision"] is None or key > (bool(best["accepted"]), -best["log10_nfa"])
         if better or rescue_on:
-            H = refit(Hc, qc_all, m_all, c["reproj_px"]) @ A
+            H = refit(Hc, qc_all, m_all, c["reproj_px"], with_scale=max_scale > 1) @ A
         if rescue_on:
             x = confirm(H, qxy, qd, A, mxy, md, c, tree=tree, exclude=np.unique(cell[at][inl]))
             guided.append({**x, "H": H, "angle_deg": angle, "inliers": int(inl.sum()), "matches": len(res)})
@@ -696,7 +723,7 @@ def register(
                                 f"their place near it (log10 p {conf_['log10_p']:.1f} >= "
                                 f"{c['confirm_log_p_max']:g})"}  # fmt: skip
     if best["accepted"] and c["reangle"]:
-        best["H"], best["reangle"] = reangle(best["H"], query_u8, scale, mxy, mm, kc, c)
+        best["H"], best["reangle"] = reangle(best["H"], query_u8, scale, mxy, mm, kc, c, max_scale > 1)
     if guided:
         best["rescue"] = r = rescue(guided, n_rot + int(tests_before), c)
         if not best["accepted"] and r["log10_nfa"] < float(c["rescue_log_nfa_max"]):
@@ -710,7 +737,7 @@ def register(
 
 
 def reangle(H: np.ndarray, query_u8: np.ndarray, scale: float, mxy: np.ndarray, mm: MapMatcher,
-            k: int, c: dict[str, Any]) -> tuple[np.ndarray, dict[str, Any]]:
+            k: int, c: dict[str, Any], with_scale: bool = False) -> tuple[np.ndarray, dict[str, Any]]:
     """An accepted pose sharpened at its own rotation: the query's features computed again with
     the query turned by the pose's angle (features that are not rotation invariant match best
     upright; the search's rotation step leaves up to half a step: SRIF optical-optical 37, 13
@@ -738,7 +765,7 @@ def reangle(H: np.ndarray, query_u8: np.ndarray, scale: float, mxy: np.ndarray, 
     rec["before"] = support(H0)
     Hc = H0
     for t in (c["confirm_radius_px"] / 2, c["confirm_radius_px"] / 4, 2 * tol, tol):
-        Hc = refit(Hc, q, m, t, rounds=2)  # least squares, the tolerance narrowing
+        Hc = refit(Hc, q, m, t, rounds=2, with_scale=with_scale)  # least squares, narrowing
     rec["after"] = support(Hc)
     if rec["after"] <= rec["before"]:
         return H, rec
@@ -1055,7 +1082,7 @@ def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g:
                         conf: dict[str, Any], aspect: float = 1.0,
                         ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray] | None:  # fmt: skip
     """``read_map_features`` kept per orthophoto (``view.ortho_id``; None: computed each time):
-    the last map in memory and, when ``view.cache_dir`` is set, every map on disk
+    the last ones in memory (``MEMO_BYTES``) and, when ``view.cache_dir`` is set, every map on disk
     (``<kind>_<key>.npz``, written through ``georeg.io.atomic.atomic_path``, so parallel jobs may
     race safely). The key: the orthophoto, ``bounds``, ``g``, the view's feature GSD,
     ``FEATURE_KEYS``, ``CACHE_VERSION`` and ``aspect``. Returns as ``read_map_features`` (stored at full
@@ -1068,8 +1095,8 @@ def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g:
                        round(float(view.source.gsd_m), 9), [c[k] for k in FEATURE_KEYS],
                        CACHE_VERSION, *([round(aspect, 6)] if aspect != 1.0 else [])])  # fmt: skip
     key = hashlib.sha256(blob.encode()).hexdigest()[:20]
-    if _MEMO.get(c["kind"], ("",))[0] == key:
-        return _MEMO[c["kind"]][1]
+    if key in _MEMO:
+        return _MEMO[key]
     path = Path(view.cache_dir) / f"{c['kind']}_{key}.npz" if view.cache_dir else None
     if path is not None and path.exists():
         try:
@@ -1080,7 +1107,7 @@ def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g:
             log.warning("%s: map feature cache %s unreadable (%s): computing again", c["kind"], path, e)
             got = None
         if got is not None:
-            _MEMO[c["kind"]] = (key, got)
+            _remember(key, got)
             return got
     t0 = time.perf_counter()
     got = read_map_features(view.read_window, bounds, g, c, aspect)
@@ -1093,12 +1120,22 @@ def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g:
 
         with atomic_path(path) as tmp:
             np.savez(tmp, xy=got[0], desc=got[1], area=np.float64(got[2]), G=got[3])
-    _MEMO[c["kind"]] = (key, got)
+    _remember(key, got)
     return got
 
 
+def gsd_guesses(map_gsd: float, factors: list[float]) -> list[float]:
+    """The GSDs searched for a query without one: ``GUESS_STEP`` apart from the finest of the
+    feature search's ``factors`` x ``map_gsd`` to twice the coarsest, the map's own GSD among them,
+    nearest to it first (the likeliest: an image of the map's resolution)."""
+    lo, hi = math.log(min(factors)), math.log(2.0 * max(factors))
+    step = math.log(GUESS_STEP)
+    ks = range(math.floor(lo / step + 1e-9), math.ceil(hi / step - 1e-9) + 1)
+    return [map_gsd * GUESS_STEP**k for k in sorted(ks, key=lambda k: (abs(k), -k))]
+
+
 def _search(gsd: float, u8: np.ndarray, view: Any, b: tuple[float, ...], c: dict[str, Any],
-            conf: dict[str, Any], aspect: float, tests_before: int,
+            conf: dict[str, Any], aspect: float, tests_before: int, max_scale: float = 1.0,
             ) -> tuple[dict[str, Any], np.ndarray | None, dict[str, Any] | None]:  # fmt: skip
     """One ``register`` of the query, taken at ``gsd`` map units a pixel, against the map's
     features on the working grid of pixel ``aspect``: the result, its pose (query px -> map) and
@@ -1109,7 +1146,8 @@ def _search(gsd: float, u8: np.ndarray, view: Any, b: tuple[float, ...], c: dict
         return {}, None, None
     mxy, md, area, G = got
     r = register(u8, None, gsd / g, conf.get("acceptance") or {}, c, map_feats=(mxy, md),
-                 gsd_m=gsd, map_gsd_m=g, tests_before=tests_before, area=area)  # fmt: skip
+                 gsd_m=gsd, map_gsd_m=g, tests_before=tests_before, area=area,
+                 max_scale=max_scale)  # fmt: skip
     H = None if r["H"] is None else G @ r["H"]
     rec = {"ran": True, "candidates": int(r["tests"]), "accepted": r["accepted"],
            "tests_before": tests_before, "inliers": r["inliers"],
@@ -1121,6 +1159,9 @@ def _search(gsd: float, u8: np.ndarray, view: Any, b: tuple[float, ...], c: dict
            "reangle": r.get("reangle"), "reason": f"fewer than min_cells ({c['min_cells']}) matched cells at every rotation"
            if r["decision"] is None else r["decision"].get("reason", ""), "aspect": round(aspect, 4),
            "gsd": gsd}  # fmt: skip
+    if max_scale > 1:  # the guess, and the GSD the pose found (its scale free)
+        rec["guess"] = gsd
+        rec["gsd"] = gsd if H is None else math.sqrt(abs(np.linalg.det(H[:2, :2])))
     return r, H, rec
 
 
@@ -1139,8 +1180,9 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     ``register``; an accepted pose
     is refit to the orthophoto around its footprint (``polish``; rejected when a moved pose is
     better supported) and becomes one more (whole-query) part. A query without a GSD is searched
-    at each guess of ``q.factors`` (``unknown_gsd_factors``), and a pose found at a guess needs
-    ``STRUCTURE_GUESSED`` x the structure. Not run without an orthophoto, or above ``max_map_px``
+    at each of ``gsd_guesses`` (from ``q.factors``: ``unknown_gsd_factors``) with a similarity fit
+    (``GUESS_SCALE``), until a strong pose; a pose found at a guess needs ``STRUCTURE_GUESSED`` x
+    the structure. Not run without an orthophoto, or above ``max_map_px``
     map pixels at the query's GSD (the cost grows with the map). A map whose
     ``view.aspect`` is >= ``ASPECT_MIN`` from 1 is searched at that pixel aspect too, the better
     pose kept (``_search``; ``aspects`` in the record). ``key``:
@@ -1161,8 +1203,9 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     elif not on:
         return parts, {"ran": False, "reason": "disabled"}
     c = rift_conf(rc)
-    # the query's GSD, or, unknown, each guess of the feature search (``unknown_gsd_factors``)
-    gsds = [float(q.gsd)] if q.gsd is not None else [float(f) * float(view.source.gsd_m) for f in q.factors]
+    # the query's GSD, or, unknown, guesses spanning the feature search's (``unknown_gsd_factors``)
+    gsds = [float(q.gsd)] if q.gsd is not None else gsd_guesses(float(view.source.gsd_m), q.factors)
+    guessed = q.gsd is None  # and so is the pose's scale: a similarity fit
     why = "no orthophoto" if view.read_window is None else ""
     b = tuple(float(v) for v in view.source.bounds)
     g = min(working_gsd(v, view, c) for v in gsds)
@@ -1179,17 +1222,21 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     aspects = [1.0] + ([a] if abs(a - 1.0) >= ASPECT_MIN else [])
     runs = [(v, k) for v in gsds for k in aspects]
     other = int(c["rotations"]) * (len(runs) - 1)
+    strong = float(c["log_nfa_max"]) - float(c["null_margin"])
     passes = []
     for v, k in runs:
-        got = _search(v, u8, view, b, c, conf, k, int(q.tests_before) + other)
+        got = _search(v, u8, view, b, c, conf, k, int(q.tests_before) + other,
+                      GUESS_SCALE if guessed else 1.0)  # fmt: skip
         if got[2] is not None:
             passes.append(got)
+            if guessed and got[0]["accepted"] and got[0]["log10_nfa"] < strong:
+                break  # a strong pose at a guess: the others' tests are counted all the same
     if not passes:
         return parts, {"ran": False, "reason": "orthophoto window unreadable"}
     r, H, rec = max(passes, key=lambda p: (bool(p[0]["accepted"]), -p[0]["log10_nfa"]))
-    if len(passes) > 1:  # every search, listed under what it varied: the aspect, the GSD guess
-        each = [{k: p[2][k] for k in ("aspect", "gsd", "candidates", "accepted", "log10_nfa", "inliers", "reason")}
-                for p in passes]  # fmt: skip
+    if len(runs) > 1:  # every search run, listed under what it varied: the aspect, the GSD guess
+        keys = ("aspect", "gsd", "guess", "candidates", "accepted", "log10_nfa", "inliers", "reason")
+        each = [{k: p[2][k] for k in keys if k in p[2]} for p in passes]
         rec = {**rec, "candidates": sum(p[2]["candidates"] for p in passes),
                **({"aspects": each} if len(aspects) > 1 else {}),
                **({"gsd_guesses": each} if len(gsds) > 1 else {})}  # fmt: skip
@@ -1203,7 +1250,6 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     if r["accepted"] and H is not None and zmin > 0:
         # a weak pose (log10 NFA above the strip rule's line) needs more of the structure
         weak = r["log10_nfa"] > float(c["log_nfa_max"]) - float(c["null_margin"])
-        guessed = q.gsd is None  # and so is the pose's scale
         need = zmin * max(STRUCTURE_WEAK if weak else 1.0, STRUCTURE_GUESSED if guessed else 1.0)
         rec["structure"] = st = structure_check(u8, H, view.read_window, rec["gsd"], c, q.seed,
                                                 z_enough=2 * zmin * (STRUCTURE_GUESSED if guessed else 1.0))  # fmt: skip
@@ -1217,7 +1263,8 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
         part = {"accepted": True, "homography": H.tolist(), "log10_nfa": r["log10_nfa"],
                 "inliers": r["inliers"], "matches": r["matches"], "residual_px": None,
                 "method": key, "part": len(parts), "rows": [0, u8.shape[0]], "whole_query": True,
-                "candidates_tried": int(rec["candidates"]), "candidates": [], "aspect": rec["aspect"]}  # fmt: skip
+                "candidates_tried": int(rec["candidates"]), "candidates": [], "aspect": rec["aspect"],
+                **({"guess_gsd": rec["guess"]} if "guess" in rec else {})}  # fmt: skip
         parts = [*parts, part]
     return parts, rec
 

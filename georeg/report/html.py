@@ -334,7 +334,7 @@ def sources_text(reg: Mapping[str, Any]) -> str | None:
             t += (f": log10 NFA {one(rift.get('log10_nfa'))}, other rotations' best "
                   f"{one(rift.get('null_log10_nfa'))}, {rift.get('matches', 0)} cells")  # fmt: skip
             if rift.get("gsd_guesses"):  # the query's GSD unknown: each guess searched
-                tried = ", ".join(f"{float(x['gsd']):.3g}" for x in rift["gsd_guesses"])
+                tried = ", ".join(f"{float(x.get('guess', x['gsd'])):.3g}" for x in rift["gsd_guesses"])
                 t += f"; GSD unknown: {tried} map units a pixel searched, this pose at {float(rift['gsd']):.3g}"
             if not rift.get("accepted") and rift.get("reason"):
                 t += f"; {rift['reason']}"
