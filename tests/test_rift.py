@@ -539,7 +539,7 @@ def test_source_searches_each_gsd_guess_when_the_gsd_is_unknown():
     assert rec["accepted"] and rec["gsd"] == pytest.approx(0.5 * g, rel=0.02)
     assert guesses[:4] == pytest.approx([g, 1.414 * g, 0.707 * g, 2 * g], rel=1e-3)
     assert guesses[4] == pytest.approx(0.5 * g) and len(guesses) == 5
-    assert rec["candidates"] == 5 * n and rec["tests_before"] == 4 * n  # each counts the others'
+    assert rec["candidates"] == 10 * n and rec["tests_before"] == 8 * n  # two fits a rotation, each counts the others
     truth = G @ np.linalg.inv(np.vstack([A, [0, 0, 1.0]]))
     pts = np.array([[0, 0], [239, 0], [0, 239], [239, 239]], float)
     err = matching.apply_h(np.array(parts[0]["homography"]), pts) - matching.apply_h(truth, pts)

@@ -628,8 +628,9 @@ def register(
     >= ``NULL_FAR_DEG`` away; accepted only ``null_margin`` decades below it), ``confirm`` (the
     accepted pose's guided re-match), ``rescue`` (every rotation's re-match in the cells its fit
     did not use: the pose accepted when nothing else is, ``rescue``) and ``decision``.
-    A rotation with fewer than ``min_cells`` matched cells is not scored. ``max_scale`` > 1: the
-    fit is a similarity, its scale within 1 / max_scale .. max_scale (a guessed GSD)."""
+    A rotation with fewer than ``min_cells`` matched cells is not scored. ``max_scale`` > 1 (a
+    guessed GSD): each rotation also gets a similarity fit, its scale within 1 / max_scale ..
+    max_scale, scored, counted and re-matched like the rigid one."""
     from georeg.register import acceptance
 
     c = rift_conf(conf)
@@ -648,10 +649,12 @@ def register(
     strong = float(acc["log_nfa_max"]) - float(c["null_margin"])
     area = float((map_u8 > 0).sum()) if area is None else float(area)
     n_rot = int(c["rotations"])
+    models = (1.0, max_scale) if max_scale > 1 else (1.0,)  # each rotation's fits, each a test
+    n_tests = n_rot * len(models) + int(tests_before)
     h, w = query_u8.shape
     to_m = np.diag([map_gsd_m, -map_gsd_m, 1.0])  # map px -> north-up map units (handedness)
     best: dict[str, Any] = {"accepted": False, "H": None, "log10_nfa": math.inf, "inliers": 0,
-                            "matches": 0, "tests": n_rot, "angle_deg": None, "decision": None}  # fmt: skip
+                            "matches": 0, "tests": n_rot * len(models), "angle_deg": None, "decision": None}  # fmt: skip
     per_rot: list[tuple[float, float]] = []  # (angle, log10 NFA) of each rotation's pose
     seen: tuple[np.ndarray, ...] = ()  # the best rotation's query keypoints, descriptors, A
     rescue_on = float(c["rescue_log_nfa_max"]) < 0
@@ -677,34 +680,34 @@ def register(
         top = slice(None)  # hypotheses from the most similar matches only: O(n^2) pairs x n
         if len(hyp) > c["max_hypothesis_matches"]:
             top = np.sort(np.argsort(-hsim)[: int(c["max_hypothesis_matches"])])
-        Hc = rigid_ransac(qxy[hyp[top, 0]], mxy[hyp[top, 1]], c["reproj_px"], c["max_angle_deg"], max_scale)
-        if Hc is None:
-            continue
         Ainv = np.linalg.inv(A)
-        q = (np.c_[qc, np.ones(len(qc))] @ Ainv.T)[:, :2]  # query px
-        H = Hc @ A
-        res, at = cell_min(np.linalg.norm((np.c_[q, np.ones(len(q))] @ H.T)[:, :2] - m, axis=1), cell)
-        q = q[at]
-        inl = res <= c["reproj_px"]
-        capped = np.where(res <= c["nfa_cap_px"], res, 1e9)  # a miss: p = 1, n unchanged
-        # a cell's best of k candidates lands within e of chance with probability k pi e^2 / area
-        dec = acceptance.decide(to_m @ H, capped, int(inl.sum()), area / kc, w, h,
-                                gsd_m if gsd_m is not None else scale * map_gsd_m, acc,
-                                n_candidates=n_rot + int(tests_before),
-                                inlier_q_xy=q[inl], strip_log_nfa=strong)  # fmt: skip
-        lnfa = float(dec.get("log10_nfa", math.inf))
-        per_rot.append((angle, lnfa))
-        key = (bool(dec["accepted"]), -lnfa)
-        better = best["decision"] is None or key > (bool(best["accepted"]), -best["log10_nfa"])
-        if better or rescue_on:
-            H = refit(Hc, qc_all, m_all, c["reproj_px"], with_scale=max_scale > 1) @ A
-        if rescue_on:
-            x = confirm(H, qxy, qd, A, mxy, md, c, tree=tree, exclude=np.unique(cell[at][inl]))
-            guided.append({**x, "H": H, "angle_deg": angle, "inliers": int(inl.sum()), "matches": len(res)})
-        if better:
-            best.update(accepted=bool(dec["accepted"]), H=H, log10_nfa=lnfa,
-                        inliers=int(inl.sum()), matches=len(res), angle_deg=angle, decision=dec)  # fmt: skip
-            seen = (qxy, qd, A)
+        q0 = (np.c_[qc, np.ones(len(qc))] @ Ainv.T)[:, :2]  # query px
+        for ms in models:  # the rigid fit, and at a guessed GSD the similarity too
+            Hc = rigid_ransac(qxy[hyp[top, 0]], mxy[hyp[top, 1]], c["reproj_px"], c["max_angle_deg"], ms)
+            if Hc is None:
+                continue
+            H = Hc @ A
+            res, at = cell_min(np.linalg.norm((np.c_[q0, np.ones(len(q0))] @ H.T)[:, :2] - m, axis=1), cell)
+            q = q0[at]
+            inl = res <= c["reproj_px"]
+            capped = np.where(res <= c["nfa_cap_px"], res, 1e9)  # a miss: p = 1, n unchanged
+            # a cell's best of k candidates lands within e of chance with probability k pi e^2 / area
+            dec = acceptance.decide(to_m @ H, capped, int(inl.sum()), area / kc, w, h,
+                                    gsd_m if gsd_m is not None else scale * map_gsd_m, acc,
+                                    n_candidates=n_tests, inlier_q_xy=q[inl], strip_log_nfa=strong)  # fmt: skip
+            lnfa = float(dec.get("log10_nfa", math.inf))
+            per_rot.append((angle, lnfa))
+            key = (bool(dec["accepted"]), -lnfa)
+            better = best["decision"] is None or key > (bool(best["accepted"]), -best["log10_nfa"])
+            if better or rescue_on:
+                H = refit(Hc, qc_all, m_all, c["reproj_px"], with_scale=ms > 1) @ A
+            if rescue_on:
+                x = confirm(H, qxy, qd, A, mxy, md, c, tree=tree, exclude=np.unique(cell[at][inl]))
+                guided.append({**x, "H": H, "angle_deg": angle, "inliers": int(inl.sum()), "matches": len(res)})
+            if better:
+                best.update(accepted=bool(dec["accepted"]), H=H, log10_nfa=lnfa, scale_free=ms > 1,
+                            inliers=int(inl.sum()), matches=len(res), angle_deg=angle, decision=dec)  # fmt: skip
+                seen = (qxy, qd, A)
     best["lowest_log10_nfa"] = best["log10_nfa"]
     best["null_log10_nfa"] = _null_log_nfa(per_rot, best["angle_deg"])
     best["per_rotation"] = per_rot
@@ -723,9 +726,9 @@ def register(
                                 f"their place near it (log10 p {conf_['log10_p']:.1f} >= "
                                 f"{c['confirm_log_p_max']:g})"}  # fmt: skip
     if best["accepted"] and c["reangle"]:
-        best["H"], best["reangle"] = reangle(best["H"], query_u8, scale, mxy, mm, kc, c, max_scale > 1)
+        best["H"], best["reangle"] = reangle(best["H"], query_u8, scale, mxy, mm, kc, c, best.get("scale_free", False))
     if guided:
-        best["rescue"] = r = rescue(guided, n_rot + int(tests_before), c)
+        best["rescue"] = r = rescue(guided, n_tests, c)
         if not best["accepted"] and r["log10_nfa"] < float(c["rescue_log_nfa_max"]):
             reason = (f"rescued by the guided re-match: {r['hits']} of {r['cells']} cells its fit "
                       f"did not use found their place (log10 NFA {r['log10_nfa']:.1f})")
@@ -1221,7 +1224,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     # better pose wins, each search's NFA counting the others' rotations
     aspects = [1.0] + ([a] if abs(a - 1.0) >= ASPECT_MIN else [])
     runs = [(v, k) for v in gsds for k in aspects]
-    other = int(c["rotations"]) * (len(runs) - 1)
+    other = int(c["rotations"]) * (2 if guessed else 1) * (len(runs) - 1)  # fits a rotation
     strong = float(c["log_nfa_max"]) - float(c["null_margin"])
     passes = []
     for v, k in runs:
