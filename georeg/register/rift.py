@@ -169,6 +169,11 @@ STRUCTURE_GUESSED = 2.0
 #: off registered 0 of 12 SRIF optical-infrared pairs; the similarity 11-12 of 12 from 11 % coarser
 #: to 25 % finer, 4 of 12 at 25 % coarser: session 32) ...
 GUESS_SCALE = 1.3
+#: ... used only when its scale is more than this off the guess: nearer, the rigid fit is the
+#: pose (SRIF od 97, unscaled, at the guess 1: the similarity's pose at 0.92 scored better and
+#: came 10.7 px off, the rigid one 0.6 px; 0.05 left it so. A rigid fit 10 % off registered none of
+#: 12 SRIF pairs: docs/experiments/2026-11-29-session32.md)
+RIGID_HOLDS = 0.1
 #: ... and the guesses are spaced by this factor, from the finest of ``unknown_gsd_factors`` to
 #: twice the coarsest (a query coarser than the map: SRIF optical-optical's scaled queries)
 GUESS_STEP = math.sqrt(2.0)
@@ -684,8 +689,8 @@ def register(
         q0 = (np.c_[qc, np.ones(len(qc))] @ Ainv.T)[:, :2]  # query px
         for ms in models:  # the rigid fit, and at a guessed GSD the similarity too
             Hc = rigid_ransac(qxy[hyp[top, 0]], mxy[hyp[top, 1]], c["reproj_px"], c["max_angle_deg"], ms)
-            if Hc is None:
-                continue
+            if Hc is None or (ms > 1 and abs(math.sqrt(abs(np.linalg.det(Hc[:2, :2]))) - 1) < RIGID_HOLDS):
+                continue  # a similarity this near the guess: the rigid fit is the pose
             H = Hc @ A
             res, at = cell_min(np.linalg.norm((np.c_[q0, np.ones(len(q0))] @ H.T)[:, :2] - m, axis=1), cell)
             q = q0[at]
