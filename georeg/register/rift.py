@@ -165,7 +165,7 @@ STRUCTURE_WEAK = 1.25
 #: at log10 NFA -13.5 on a blanked map); the true poses found at a guess read z >= 5.26 there and
 #: on SRIF, one aside (SRIF oi 191 at 2.34). Chosen on both halves: session 31
 STRUCTURE_GUESSED = 2.0
-#: a guessed GSD's fit is a similarity, its scale within 1 / this .. this (a rigid fit at a GSD 10 %
+#: at a guessed GSD each rotation's second fit is a similarity, its scale within 1 / this .. this (a rigid fit at a GSD 10 %
 #: off registered 0 of 12 SRIF optical-infrared pairs; the similarity 11-12 of 12 from 11 % coarser
 #: to 25 % finer, 4 of 12 at 25 % coarser: session 32) ...
 GUESS_SCALE = 1.3
@@ -635,7 +635,8 @@ def register(
     did not use: the pose accepted when nothing else is, ``rescue``) and ``decision``.
     A rotation with fewer than ``min_cells`` matched cells is not scored. ``max_scale`` > 1 (a
     guessed GSD): each rotation also gets a similarity fit, its scale within 1 / max_scale ..
-    max_scale, scored, counted and re-matched like the rigid one."""
+    max_scale, counted like the rigid one, and scored and re-matched when its scale is more
+    than ``RIGID_HOLDS`` off."""
     from georeg.register import acceptance
 
     c = rift_conf(conf)
