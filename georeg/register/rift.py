@@ -200,6 +200,12 @@ def _remember(key: str, got: tuple[np.ndarray, np.ndarray, float, np.ndarray]) -
         _MEMO.pop(next(iter(_MEMO)))
 
 
+def fits(max_scale: float) -> tuple[float, ...]:
+    """The fits each rotation gets (each one test): rigid, and with ``max_scale`` > 1 (a guessed
+    GSD) a similarity within 1 / max_scale .. max_scale."""
+    return (1.0, max_scale) if max_scale > 1 else (1.0,)
+
+
 def rift_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
     """DEFAULTS updated by ``conf``; unknown keys are an error."""
     conf = dict(conf or {})
@@ -655,7 +661,7 @@ def register(
     strong = float(acc["log_nfa_max"]) - float(c["null_margin"])
     area = float((map_u8 > 0).sum()) if area is None else float(area)
     n_rot = int(c["rotations"])
-    models = (1.0, max_scale) if max_scale > 1 else (1.0,)  # each rotation's fits, each a test
+    models = fits(max_scale)
     n_tests = n_rot * len(models) + int(tests_before)
     h, w = query_u8.shape
     to_m = np.diag([map_gsd_m, -map_gsd_m, 1.0])  # map px -> north-up map units (handedness)
@@ -1230,12 +1236,12 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     # better pose wins, each search's NFA counting the others' rotations
     aspects = [1.0] + ([a] if abs(a - 1.0) >= ASPECT_MIN else [])
     runs = [(v, k) for v in gsds for k in aspects]
-    other = int(c["rotations"]) * (2 if guessed else 1) * (len(runs) - 1)  # fits a rotation
+    max_scale = GUESS_SCALE if guessed else 1.0
+    other = int(c["rotations"]) * len(fits(max_scale)) * (len(runs) - 1)
     strong = float(c["log_nfa_max"]) - float(c["null_margin"])
     passes = []
     for v, k in runs:
-        got = _search(v, u8, view, b, c, conf, k, int(q.tests_before) + other,
-                      GUESS_SCALE if guessed else 1.0)  # fmt: skip
+        got = _search(v, u8, view, b, c, conf, k, int(q.tests_before) + other, max_scale)
         if got[2] is not None:
             passes.append(got)
             if guessed and got[0]["accepted"] and got[0]["log10_nfa"] < strong:
