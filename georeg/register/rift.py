@@ -1180,6 +1180,38 @@ def _search(gsd: float, u8: np.ndarray, view: Any, b: tuple[float, ...], c: dict
     return r, H, rec
 
 
+def _verify(r: dict[str, Any], H: np.ndarray | None, rec: dict[str, Any], u8: np.ndarray,
+            view: Any, c: dict[str, Any], conf: dict[str, Any], guessed: bool, seed: int) -> None:
+    """One search's accepted pose, verified in place: refit to the orthophoto (``polish``; refused
+    when a moved pose is better supported) and its structure agreement (``structure_check``; a
+    weak pose needs ``STRUCTURE_WEAK`` x ``structure_z_min``, one at a guessed GSD
+    ``STRUCTURE_GUESSED`` x). A refused pose leaves the other searches to run; the polished pose
+    is kept in ``rec["_H"]``."""
+    if not r["accepted"] or H is None:
+        return
+    if c["polish"]:
+        H, rec["polish"] = polish(u8, H, view.read_window, conf)
+        rec["_H"] = H
+        if rec["polish"] and rec["polish"]["moved_better"]:
+            r["accepted"] = rec["accepted"] = False
+            rec["reason"] = "the orthophoto's tie points support a moved pose better (gain < 1)"
+            return
+    zmin = float(c["structure_z_min"])
+    if zmin <= 0:
+        return
+    # a weak pose (log10 NFA above the strip rule's line) needs more of the structure
+    weak = r["log10_nfa"] > float(c["log_nfa_max"]) - float(c["null_margin"])
+    need = zmin * max(STRUCTURE_WEAK if weak else 1.0, STRUCTURE_GUESSED if guessed else 1.0)
+    rec["structure"] = st = structure_check(u8, H, view.read_window, rec["gsd"], c, seed,
+                                            z_enough=2 * zmin * (STRUCTURE_GUESSED if guessed else 1.0))  # fmt: skip
+    if st is not None and st["z"] < need:
+        r["accepted"] = rec["accepted"] = False
+        why = [w for w, on in (("a weak pose", weak), ("a guessed GSD", guessed)) if on]
+        rec["reason"] = (f"the orthophoto's structure agrees with the query's at the pose no "
+                         f"better than at random poses nearby (z {st['z']:.1f} < {need:g}"
+                         f"{''.join(', ' + w for w in why)}): a look-alike")  # fmt: skip
+
+
 def working_gsd(gsd: float, view: Any, c: dict[str, Any]) -> float:
     """The map's working GSD for a query of ``gsd``: the map's feature GSD (the query resampled to
     it), or the query's own when that is more than ``max_upsample`` coarser (the map shrunk)."""
@@ -1243,12 +1275,14 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     for v, k in runs:
         got = _search(v, u8, view, b, c, conf, k, int(q.tests_before) + other, max_scale)
         if got[2] is not None:
+            _verify(*got, u8, view, c, conf, guessed, q.seed)
             passes.append(got)
             if guessed and got[0]["accepted"] and got[0]["log10_nfa"] < strong:
-                break  # a strong pose at a guess: the others' tests are counted all the same
+                break  # a strong verified pose at a guess: the others' tests counted all the same
     if not passes:
         return parts, {"ran": False, "reason": "orthophoto window unreadable"}
     r, H, rec = max(passes, key=lambda p: (bool(p[0]["accepted"]), -p[0]["log10_nfa"]))
+    H = rec.pop("_H", H)
     if len(runs) > 1:  # every search run, listed under what it varied: the aspect, the GSD guess
         keys = ("aspect", "gsd", "guess", "candidates", "accepted", "log10_nfa", "inliers", "reason")
         each = [{k: p[2][k] for k in keys if k in p[2]} for p in passes]
@@ -1256,24 +1290,6 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
                **({"aspects": each} if len(aspects) > 1 else {}),
                **({"gsd_guesses": each} if len(gsds) > 1 else {})}  # fmt: skip
     rec["seconds"] = time.perf_counter() - t0
-    if r["accepted"] and H is not None and c["polish"]:
-        H, rec["polish"] = polish(u8, H, view.read_window, conf)
-        if rec["polish"] and rec["polish"]["moved_better"]:
-            r["accepted"] = rec["accepted"] = False
-            rec["reason"] = "the orthophoto's tie points support a moved pose better (gain < 1)"
-    zmin = float(c["structure_z_min"])
-    if r["accepted"] and H is not None and zmin > 0:
-        # a weak pose (log10 NFA above the strip rule's line) needs more of the structure
-        weak = r["log10_nfa"] > float(c["log_nfa_max"]) - float(c["null_margin"])
-        need = zmin * max(STRUCTURE_WEAK if weak else 1.0, STRUCTURE_GUESSED if guessed else 1.0)
-        rec["structure"] = st = structure_check(u8, H, view.read_window, rec["gsd"], c, q.seed,
-                                                z_enough=2 * zmin * (STRUCTURE_GUESSED if guessed else 1.0))  # fmt: skip
-        if st is not None and st["z"] < need:
-            r["accepted"] = rec["accepted"] = False
-            why = [w for w, on in (("a weak pose", weak), ("a guessed GSD", guessed)) if on]
-            rec["reason"] = (f"the orthophoto's structure agrees with the query's at the pose no "
-                             f"better than at random poses nearby (z {st['z']:.1f} < {need:g}"
-                             f"{''.join(', ' + w for w in why)}): a look-alike")  # fmt: skip
     if r["accepted"] and H is not None:
         part = {"accepted": True, "homography": H.tolist(), "log10_nfa": r["log10_nfa"],
                 "inliers": r["inliers"], "matches": r["matches"], "residual_px": None,
