@@ -571,3 +571,26 @@ def test_pucallpa_chance_pose_at_a_guessed_gsd_needs_more_structure(shared_data)
     assert rec["guess"] == pytest.approx(90.0) and rec["gsd"] == pytest.approx(90.0, rel=1 - 1 / rift.GUESS_SCALE)
     assert rec["log10_nfa"] < -6 and "a guessed GSD" in rec["reason"], rec["reason"]
     assert rec["structure"]["z"] < rift.STRUCTURE_GUESSED * rift.DEFAULTS["structure_z_min"]
+
+
+def test_pucallpa_refused_guess_leaves_the_other_guesses_to_run(shared_data):
+    """Landsat Pucallpa (bench_devset, seed 11, checking half), the GSD withheld: the 1995 SWIR
+    crop on the 2005 map (the blanked map of the test above, unblanked). At the guess 90 m rift
+    finds a strong pose 283 px from the truth, which the structure check refuses (z 2.4); the
+    search goes on (``rift._verify`` runs inside the loop over the guesses) and a later guess finds
+    the true pose. Before, the refused strong pose ended the search: ``not_found``."""
+    if not (shared_data / "swir_dates" / "landsat_pucallpa" / "2005.tif").exists():
+        pytest.skip("Landsat Pucallpa absent")
+    import sys
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_crossspectral as bx
+    import bench_devset as bd
+
+    q, sc = _pucallpa("puc_1995_on_2005_0_1.6um")
+    res = bx.run_pipeline(q, sc, bd.METHODS["wf_rift_nogsd"], bx.query_seed(11, q.name))
+    guesses = res["rift"]["gsd_guesses"]
+    first = guesses[0]
+    assert not first["accepted"] and "a guessed GSD" in first["reason"] and first["log10_nfa"] < -6, first
+    assert res["accepted"] and len(guesses) > 1, guesses
+    assert bd.judge(q, sc, res)["error_px"] <= 5.0
