@@ -1228,7 +1228,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     is refit to the orthophoto around its footprint (``polish``; rejected when a moved pose is
     better supported) and becomes one more (whole-query) part. A query without a GSD is searched
     at each of ``gsd_guesses`` (from ``q.factors``: ``unknown_gsd_factors``) with a similarity fit
-    (``GUESS_SCALE``), until a strong pose; a pose found at a guess needs ``STRUCTURE_GUESSED`` x
+    (``GUESS_SCALE``), until a strong pose that ``_verify`` keeps; a pose found at a guess needs ``STRUCTURE_GUESSED`` x
     the structure. Not run without an orthophoto, or above ``max_map_px``
     map pixels at the query's GSD (the cost grows with the map). A map whose
     ``view.aspect`` is >= ``ASPECT_MIN`` from 1 is searched at that pixel aspect too, the better
