@@ -169,11 +169,10 @@ STRUCTURE_GUESSED = 2.0
 #: off registered 0 of 12 SRIF optical-infrared pairs; the similarity 11-12 of 12 from 11 % coarser
 #: to 25 % finer, 4 of 12 at 25 % coarser: session 32) ...
 GUESS_SCALE = 1.3
-#: ... its scale free only when more than this off the guess: nearer, its matches are refit
-#: rigidly at the guess (SRIF od 97, unscaled, at the guess 1: the similarity's pose at 0.92
-#: scored better and came 10.7 px off, the rigid one 0.6 px; 0.05 left it so. A rigid fit 10 % off
-#: registered none of 12 SRIF pairs: docs/experiments/2026-11-29-session32.md. Dropping such a
-#: similarity instead lost SRIF oi 47 and 67, which only its matches found: session 33)
+#: ... used only when its scale is more than this off the guess: nearer, the rigid fit is the
+#: pose (SRIF od 97, unscaled, at the guess 1: the similarity's pose at 0.92 scored better and
+#: came 10.7 px off, the rigid one 0.6 px; 0.05 left it so. A rigid fit 10 % off registered none of
+#: 12 SRIF pairs: docs/experiments/2026-11-29-session32.md)
 RIGID_HOLDS = 0.1
 #: ... and the guesses are spaced by this factor, from the finest of ``unknown_gsd_factors`` to
 #: twice the coarsest (a query coarser than the map: SRIF optical-optical's scaled queries)
@@ -642,8 +641,8 @@ def register(
     did not use: the pose accepted when nothing else is, ``rescue``) and ``decision``.
     A rotation with fewer than ``min_cells`` matched cells is not scored. ``max_scale`` > 1 (a
     guessed GSD): each rotation also gets a similarity fit, its scale within 1 / max_scale ..
-    max_scale, counted like the rigid one; when its scale is less than ``RIGID_HOLDS`` off, its
-    matches are refit rigidly at the guess."""
+    max_scale, counted like the rigid one, and scored and re-matched when its scale is more
+    than ``RIGID_HOLDS`` off."""
     from georeg.register import acceptance
 
     c = rift_conf(conf)
@@ -697,11 +696,8 @@ def register(
         q0 = (np.c_[qc, np.ones(len(qc))] @ Ainv.T)[:, :2]  # query px
         for ms in models:  # the rigid fit, and at a guessed GSD the similarity too
             Hc = rigid_ransac(qxy[hyp[top, 0]], mxy[hyp[top, 1]], c["reproj_px"], c["max_angle_deg"], ms)
-            if Hc is None:
-                continue
-            free = ms > 1 and abs(math.sqrt(abs(np.linalg.det(Hc[:2, :2]))) - 1) >= RIGID_HOLDS
-            if ms > 1 and not free:  # a similarity this near the guess: its matches fit rigidly
-                Hc = refit(Hc, qxy[hyp[top, 0]], mxy[hyp[top, 1]], c["reproj_px"], rounds=1)
+            if Hc is None or (ms > 1 and abs(math.sqrt(abs(np.linalg.det(Hc[:2, :2]))) - 1) < RIGID_HOLDS):
+                continue  # a similarity this near the guess: the rigid fit is the pose
             H = Hc @ A
             res, at = cell_min(np.linalg.norm((np.c_[q0, np.ones(len(q0))] @ H.T)[:, :2] - m, axis=1), cell)
             q = q0[at]
@@ -716,12 +712,12 @@ def register(
             key = (bool(dec["accepted"]), -lnfa)
             better = best["decision"] is None or key > (bool(best["accepted"]), -best["log10_nfa"])
             if better or rescue_on:
-                H = refit(Hc, qc_all, m_all, c["reproj_px"], with_scale=free) @ A
+                H = refit(Hc, qc_all, m_all, c["reproj_px"], with_scale=ms > 1) @ A
             if rescue_on:
                 x = confirm(H, qxy, qd, A, mxy, md, c, tree=tree, exclude=np.unique(cell[at][inl]))
                 guided.append({**x, "H": H, "angle_deg": angle, "inliers": int(inl.sum()), "matches": len(res)})
             if better:
-                best.update(accepted=bool(dec["accepted"]), H=H, log10_nfa=lnfa, scale_free=free,
+                best.update(accepted=bool(dec["accepted"]), H=H, log10_nfa=lnfa, scale_free=ms > 1,
                             inliers=int(inl.sum()), matches=len(res), angle_deg=angle, decision=dec)  # fmt: skip
                 seen = (qxy, qd, A)
     best["lowest_log10_nfa"] = best["log10_nfa"]
