@@ -270,6 +270,19 @@ def _pucallpa(name: str):
     return q, next(s for s in scenes if s.name == q.map_scene)
 
 
+def _pucallpa_without_gsd(name: str):
+    """A Pucallpa query (seed 11) through the workflow's register path with its GSD withheld
+    (bench_devset ``wf_rift_nogsd``) -> (result, query, scene, bench_devset)."""
+    import sys
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_crossspectral as bx
+    import bench_devset as bd
+
+    q, sc = _pucallpa(name)
+    return bx.run_pipeline(q, sc, bd.METHODS["wf_rift_nogsd"], bx.query_seed(11, q.name)), q, sc, bd
+
+
 def _control_runner(seed: int):
     """bench_crossspectral and ``run(name, rift_conf={})``: one query of Pucallpa's
     visible control (draw ``seed``, blanked maps included) through the workflow's register path
@@ -558,14 +571,7 @@ def test_pucallpa_chance_pose_at_a_guessed_gsd_needs_more_structure(shared_data)
     similarity fit, session 31: the same place at z 2.7, refused by ``STRUCTURE_GUESSED`` alone)."""
     if not (shared_data / "swir_dates" / "landsat_pucallpa" / "2005.tif").exists():
         pytest.skip("Landsat Pucallpa absent")
-    import sys
-
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import bench_crossspectral as bx
-    import bench_devset as bd
-
-    q, sc = _pucallpa("puc_1995_on_2005_0_1.6um_blanked")
-    res = bx.run_pipeline(q, sc, bd.METHODS["wf_rift_nogsd"], bx.query_seed(11, q.name))
+    res, _, _, _ = _pucallpa_without_gsd("puc_1995_on_2005_0_1.6um_blanked")
     rec = res["rift"]
     assert not res["accepted"], rec
     assert rec["guess"] == pytest.approx(90.0) and rec["gsd"] == pytest.approx(90.0, rel=1 - 1 / rift.GUESS_SCALE)
@@ -581,14 +587,7 @@ def test_pucallpa_refused_guess_leaves_the_other_guesses_to_run(shared_data):
     the true pose. Before, the refused strong pose ended the search: ``not_found``."""
     if not (shared_data / "swir_dates" / "landsat_pucallpa" / "2005.tif").exists():
         pytest.skip("Landsat Pucallpa absent")
-    import sys
-
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import bench_crossspectral as bx
-    import bench_devset as bd
-
-    q, sc = _pucallpa("puc_1995_on_2005_0_1.6um")
-    res = bx.run_pipeline(q, sc, bd.METHODS["wf_rift_nogsd"], bx.query_seed(11, q.name))
+    res, q, sc, bd = _pucallpa_without_gsd("puc_1995_on_2005_0_1.6um")
     guesses = res["rift"]["gsd_guesses"]
     first = guesses[0]
     assert not first["accepted"] and "a guessed GSD" in first["reason"] and first["log10_nfa"] < -6, first

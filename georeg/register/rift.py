@@ -1181,35 +1181,37 @@ def _search(gsd: float, u8: np.ndarray, view: Any, b: tuple[float, ...], c: dict
 
 
 def _verify(r: dict[str, Any], H: np.ndarray | None, rec: dict[str, Any], u8: np.ndarray,
-            view: Any, c: dict[str, Any], conf: dict[str, Any], guessed: bool, seed: int) -> None:
-    """One search's accepted pose, verified in place: refit to the orthophoto (``polish``; refused
-    when a moved pose is better supported) and its structure agreement (``structure_check``; a
-    weak pose needs ``STRUCTURE_WEAK`` x ``structure_z_min``, one at a guessed GSD
-    ``STRUCTURE_GUESSED`` x). A refused pose leaves the other searches to run; the polished pose
-    is kept in ``rec["_H"]``."""
+            view: Any, c: dict[str, Any], conf: dict[str, Any], guessed: bool,
+            seed: int) -> np.ndarray | None:  # fmt: skip
+    """One search's accepted pose verified (``r`` and ``rec`` updated in place): refit to the
+    orthophoto (``polish``; refused when a moved pose is better supported) and its structure
+    agreement (``structure_check``; a weak pose needs ``STRUCTURE_WEAK`` x ``structure_z_min``,
+    one at a guessed GSD ``STRUCTURE_GUESSED`` x). A refused pose leaves the other searches to
+    run. Returns the pose to use (the polished one)."""
     if not r["accepted"] or H is None:
-        return
+        return H
     if c["polish"]:
         H, rec["polish"] = polish(u8, H, view.read_window, conf)
-        rec["_H"] = H
         if rec["polish"] and rec["polish"]["moved_better"]:
             r["accepted"] = rec["accepted"] = False
             rec["reason"] = "the orthophoto's tie points support a moved pose better (gain < 1)"
-            return
+            return H
     zmin = float(c["structure_z_min"])
     if zmin <= 0:
-        return
+        return H
     # a weak pose (log10 NFA above the strip rule's line) needs more of the structure
     weak = r["log10_nfa"] > float(c["log_nfa_max"]) - float(c["null_margin"])
-    need = zmin * max(STRUCTURE_WEAK if weak else 1.0, STRUCTURE_GUESSED if guessed else 1.0)
+    at_guess = STRUCTURE_GUESSED if guessed else 1.0
+    need = zmin * max(STRUCTURE_WEAK if weak else 1.0, at_guess)
     rec["structure"] = st = structure_check(u8, H, view.read_window, rec["gsd"], c, seed,
-                                            z_enough=2 * zmin * (STRUCTURE_GUESSED if guessed else 1.0))  # fmt: skip
+                                            z_enough=2 * zmin * at_guess)  # fmt: skip
     if st is not None and st["z"] < need:
         r["accepted"] = rec["accepted"] = False
         why = [w for w, on in (("a weak pose", weak), ("a guessed GSD", guessed)) if on]
         rec["reason"] = (f"the orthophoto's structure agrees with the query's at the pose no "
                          f"better than at random poses nearby (z {st['z']:.1f} < {need:g}"
                          f"{''.join(', ' + w for w in why)}): a look-alike")  # fmt: skip
+    return H
 
 
 def working_gsd(gsd: float, view: Any, c: dict[str, Any]) -> float:
@@ -1228,8 +1230,8 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     is refit to the orthophoto around its footprint (``polish``; rejected when a moved pose is
     better supported) and becomes one more (whole-query) part. A query without a GSD is searched
     at each of ``gsd_guesses`` (from ``q.factors``: ``unknown_gsd_factors``) with a similarity fit
-    (``GUESS_SCALE``), until a strong pose that ``_verify`` keeps; a pose found at a guess needs ``STRUCTURE_GUESSED`` x
-    the structure. Not run without an orthophoto, or above ``max_map_px``
+    (``GUESS_SCALE``), until a strong pose that ``_verify`` keeps; a pose found at a guess needs
+    ``STRUCTURE_GUESSED`` x the structure. Not run without an orthophoto, or above ``max_map_px``
     map pixels at the query's GSD (the cost grows with the map). A map whose
     ``view.aspect`` is >= ``ASPECT_MIN`` from 1 is searched at that pixel aspect too, the better
     pose kept (``_search``; ``aspects`` in the record). ``key``:
@@ -1275,14 +1277,13 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     for v, k in runs:
         got = _search(v, u8, view, b, c, conf, k, int(q.tests_before) + other, max_scale)
         if got[2] is not None:
-            _verify(*got, u8, view, c, conf, guessed, q.seed)
+            got = (got[0], _verify(*got, u8, view, c, conf, guessed, q.seed), got[2])
             passes.append(got)
             if guessed and got[0]["accepted"] and got[0]["log10_nfa"] < strong:
                 break  # a strong verified pose at a guess: the others' tests counted all the same
     if not passes:
         return parts, {"ran": False, "reason": "orthophoto window unreadable"}
     r, H, rec = max(passes, key=lambda p: (bool(p[0]["accepted"]), -p[0]["log10_nfa"]))
-    H = rec.pop("_H", H)
     if len(runs) > 1:  # every search run, listed under what it varied: the aspect, the GSD guess
         keys = ("aspect", "gsd", "guess", "candidates", "accepted", "log10_nfa", "inliers", "reason")
         each = [{k: p[2][k] for k in keys if k in p[2]} for p in passes]
