@@ -91,6 +91,7 @@ LEFT_OUT_EVERY = 5
 TOL_QUERY_PX = 8.0  # SRIF success: median error <= 8 query px (the data README's scoring)
 AUDIT_RADIUS = 24  # optical-optical truth audit: translations searched (reference px)
 AUDIT_MIN_GAIN = 0.1  # ... used when the gradient NCC rises by at least this
+RAW_QUERY = False  # --raw-query: every pixel of a SRIF query valid, its black fill too (a user's JPEG)
 PUC_DATES = (1985, 1990, 1995, 2000, 2005, 2010, 2015, 2020)
 
 
@@ -124,7 +125,7 @@ def srif_images(mod: str, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     A = np.vstack([np.loadtxt(d / f"gt_{i}.txt"), [0, 0, 1.0]])
     one = np.array([[1, 0, 1], [0, 1, 1], [0, 0, 1.0]])
     A0 = np.linalg.inv(one) @ A @ one  # 0-based: p2 = A0 p1
-    q = bx._stretch(qry, _valid_mask(qry))
+    q = bx._stretch(qry, np.ones(qry.shape, bool) if RAW_QUERY else _valid_mask(qry))
     return ref, q, A0
 
 
@@ -340,6 +341,75 @@ def _wide_mosaic(name: str, items: list[tuple[str, int, tuple[Any, ...], bool]]
     return [sc], queries
 
 
+BIG_LEFT_OUT_EVERY = 10  # the stand-in: every 10th optical-infrared reference left out
+BIG_FILLERS = 20  # ... and the first 20 optical-depth references of each half as filler
+
+
+def build_srif_big() -> tuple[list[bx.Scene], list[bx.Query]]:
+    """Issue 34's unseen case's stand-in (``srif_big``, session 34; session 33 ran it through
+    ``snakemake`` from /tmp): one mosaic of the 100 SRIF optical-infrared references, every
+    ``BIG_LEFT_OUT_EVERY``-th left out, and ``BIG_FILLERS`` optical-depth optical references of
+    each half as filler (130 references, ~13 Mpx), every optical-infrared query searched in all
+    of it. Overlapping references (SRIF's are crops of a few scenes) are found only where a pose
+    lands (``judge``: ``lazy_places``), not for all ~8,000 pairs up front."""
+    items = []
+    for k, i in enumerate(srif_pairs("oi")):
+        ref, q, A0 = srif_images("oi", i)
+        items.append(("oi", i, ref, q, A0, (k + 1) % BIG_LEFT_OUT_EVERY != 0))
+    for half in ("tuning", "checking"):
+        for i in [i for i in srif_pairs("od") if srif_half(i) == half][:BIG_FILLERS]:
+            items.append(("od", i, srif_images("od", i)[0], None, None, True))
+    inside = [(m, i) for m, i, *_, keep in items if keep]
+    refs = {(m, i): ref for m, i, ref, *_ in items}
+    offs, (H, W) = pack([refs[k].shape for k in inside])
+    mosaic = np.zeros((H, W), np.uint8)
+    boxes = {}
+    for k, (r, c) in zip(inside, offs, strict=True):
+        h, w = refs[k].shape
+        mosaic[r : r + h, c : c + w] = np.maximum(refs[k], 1)
+        boxes[k] = (r, c, h, w)
+    name = "oi_big_mosaic"
+    sc = bx.Scene(name, {}, MOSAIC_GSD, mosaic, MOSAIC_GSD, lambda p: p, "oi")
+    queries = []
+    for m, i, _, q, A0, keep in items:
+        if m != "oi":
+            continue
+        r, c = boxes.get((m, i), (0, 0, 0, 0))[:2]
+        place = [np.array([[1, 0, c], [0, 1, r], [0, 0, 1.0]])] if keep else []
+        qq = srif_query(m, i, q, A0, place, name, not keep)
+        qq.name = "big_" + qq.name
+        qq.setting = "big"  # type: ignore[attr-defined]
+        qq.lazy_places = (refs, boxes, (m, i), A0)  # type: ignore[attr-defined]
+        queries.append(qq)
+    return [sc], queries
+
+
+def _lazy_place(q: bx.Query, res: dict[str, Any]) -> bool:
+    """A big-mosaic query's pose that lands on another reference: that reference made one more
+    place of the query when it overlaps the query's own (``_overlaps``, plain SIFT between the
+    two optical references); True when a place was added."""
+    refs, boxes, own, A0 = q.lazy_places  # type: ignore[attr-defined]
+    n_r, n_c = q.bands["band"].shape
+    centre = bx.matching.apply_h(res["H"], np.array([[n_c / 2, n_r / 2]]))[0] / MOSAIC_GSD
+    col, row = centre[0], -centre[1]
+    for k, (r, c, h, w) in boxes.items():
+        if k == own or not (r <= row < r + h and c <= col < c + w):
+            continue
+        T = _overlaps({0: refs[own], 1: refs[k]}, 30).get((0, 1))
+        if T is None:
+            continue
+        P = np.array([[1, 0, c], [0, 1, r], [0, 0, 1.0]]) @ T
+        uu, vv = np.meshgrid(np.linspace(2, n_c - 3, 12), np.linspace(2, n_r - 3, 12))
+        qp = np.c_[uu.ravel(), vv.ravel()]
+        qp = qp[q.bands["band"][qp[:, 1].astype(int), qp[:, 0].astype(int)] > 0]
+        alt = bx.matching.apply_h(P, bx.matching.apply_h(np.linalg.inv(A0), qp))
+        if q.truth is None:
+            q.truth, q.truth_map = qp, alt
+        q.alts = [*(getattr(q, "alts", None) or [q.truth_map]), alt]  # type: ignore[attr-defined]
+        return True
+    return False
+
+
 def mosaic_geotransform(sc: bx.Scene) -> list[float]:
     """GDAL geotransform of a mosaic (UTM 33N, 1 m px): the map frame this benchmark gives it."""
     return [MOSAIC_ORIGIN[0], MOSAIC_GSD, 0.0, MOSAIC_ORIGIN[1], 0.0, -MOSAIC_GSD]
@@ -425,8 +495,13 @@ METHODS: dict[str, dict[str, Any]] = {
     # RIFT-style phase-congruency features (georeg/register/rift.py), verified by the acceptance
     "src_rift": {"rift": {}},
     "src_rift12": {"rift": {"rotations": 12, "max_angle_deg": 20.0}},  # v3: 30 deg steps
+    "src_rift_novote": {"rift": {"vote_regions": 0}},  # without the vote regions (session 34)
     # the workflow with the rift source enabled (fuse.SOURCES: runs when nothing else accepted)
     "wf_rift": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": False}}, "bands": 1},
+    "wf_rift_novote": {"pipeline": {"rift": {"enabled": True, "vote_regions": 0}, "learned": {"enabled": False}},
+                       "bands": 1},  # without the vote regions (session 34)
+    "wf_rift_nogsd_novote": {"pipeline": {"rift": {"enabled": True, "vote_regions": 0},
+                                          "learned": {"enabled": False}}, "bands": 1, "no_gsd": True},
     "wf_rift_nogsd": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": False}}, "bands": 1,
                       "no_gsd": True},
     # + the learned source (XFeat in rift's search, fuse.SOURCES after rift; session 27)
@@ -502,8 +577,12 @@ def run(q: bx.Query, sc: bx.Scene, name: str, seed: int) -> dict[str, Any]:
 
 def judge(q: bx.Query, sc: bx.Scene, res: dict[str, Any]) -> dict[str, Any]:
     """bench_crossspectral.judge with the query's own tolerance (SRIF: >= 5 query px)."""
-    alts = getattr(q, "alts", None) or []
     j = bx.judge(q, sc, res)
+    if j["outcome"] in ("success", "false_accept") and getattr(q, "lazy_places", None):
+        ok = q.truth is not None and j["error_px"] is not None and j["error_px"] <= q.tol_px  # type: ignore[attr-defined]
+        if not ok and _lazy_place(q, res):
+            j = bx.judge(q, sc, res)
+    alts = getattr(q, "alts", None) or []
     for alt in alts[1:]:  # the nearest place of the query counts
         q2 = bx.Query(q.name, q.scene, q.map_scene, q.bands, q.gsd, q.truth, alt)
         j2 = bx.judge(q2, sc, res)
@@ -549,6 +628,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="SRIF: the first N pairs of each half per modality (0 = all 50)")
     ap.add_argument("--block", type=int, default=BLOCK,
                     help="SRIF wide: consecutive pairs per mosaic (every 5th left out)")
+    ap.add_argument("--raw-query", action="store_true",
+                    help="SRIF queries as a user's JPEG arrives: the black fill of a rotated image valid too")
     ap.add_argument("--pool", action="store_true",
                     help="srif_wide: one mosaic per half of every chosen modality's references")
     ap.add_argument("--puc-first", type=int, default=0, help="Pucallpa: skip the first date pairs")
@@ -573,6 +654,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"no development data at {SRIF} / {PUCALLPA}", file=sys.stderr)
         return 1
     cv2.setNumThreads(1)
+    global RAW_QUERY
+    RAW_QUERY = a.raw_query
     sets = a.sets.split(",")
     scenes: list[bx.Scene] = []
     queries: list[bx.Query] = []
@@ -582,11 +665,15 @@ def main(argv: list[str] | None = None) -> int:
                           a.pool)
         scenes += s
         queries += q
+    if "srif_big" in sets:
+        s, q = build_srif_big()
+        scenes += s
+        queries += q
     if "pucallpa" in sets:
         s, q = build_pucallpa(a.seed, True, a.puc_first, a.puc_crops, a.puc_query)
         scenes += s
         queries += q
-    order = {"wide": 0, "pucallpa": 1, "pair": 2}  # a cut run keeps the targets first
+    order = {"wide": 0, "big": 0, "pucallpa": 1, "pair": 2}  # a cut run keeps the targets first
     queries.sort(key=lambda q: order[q.setting])  # type: ignore[attr-defined]
     if a.half != "both":
         queries = [q for q in queries if q.half == a.half]  # type: ignore[attr-defined]
