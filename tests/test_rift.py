@@ -461,6 +461,43 @@ def test_rescue_uses_the_hit_rate_of_far_rotations():
     assert rift.rescue([{**near, "hits": 0}], 36, c)["log10_nfa"] == math.inf
 
 
+def test_rescue_holds_a_vote_regions_pose_to_the_vote_regions_rate():
+    """A vote region's pose is judged against the far vote regions' hit rate, the map-wide
+    pool's against theirs: crowded regions' chance re-matches do not weaken the map-wide null."""
+    c = rift.rift_conf({})
+    far = [{"angle_deg": a, "hits": 1, "cells": 20, "vote": False} for a in range(30, 340, 10)]
+    crowded = [{"angle_deg": a, "hits": 5, "cells": 20, "vote": True} for a in range(30, 340, 10)]
+    near = {"angle_deg": 0.0, "hits": 12, "cells": 30, "vote": False}
+    r = rift.rescue([near, *far, *crowded], 36, c)
+    assert r["hit_rate"] == pytest.approx((31 + 1) / (31 * 20 + 1))  # the map-wide pool's
+    r_v = rift.rescue([{**near, "vote": True}, *far, *crowded], 36, c)
+    assert r_v["angle_deg"] == 0.0 and r_v["hit_rate"] == pytest.approx((31 * 5 + 1) / (31 * 20 + 1))
+    assert r_v["log10_nfa"] > r["log10_nfa"]
+
+
+def test_votes_find_the_translation_the_most_similar_matches_miss():
+    """40 true matches of one rigid pose (translation + 3 deg) among 4,000 chance matches that
+    are all more similar: the most voted region is the true place, and its matches hold the true
+    ones, a cell each at most once per bin."""
+    rng = np.random.default_rng(0)
+    c = rift.rift_conf({})
+    qt = rng.uniform(0, 300, (40, 2))
+    a = math.radians(3.0)
+    R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    mt = qt @ R.T + [2500.0, 1700.0]
+    qn, mn = rng.uniform(0, 300, (4000, 2)), rng.uniform(0, 4000, (4000, 2))
+    qc, m = np.r_[qt, qn], np.r_[mt, mn]
+    sim = np.r_[np.full(40, 0.5), rng.uniform(0.6, 1.0, 4000)]
+    cell = rift.cell_key(qc, float(c["thin_px"]))
+    regions = rift.votes(qc, m, cell, sim, 300 * math.sqrt(2), 1.0, c, 8)
+    assert 1 <= len(regions) <= 8
+    first = regions[0]
+    assert np.isin(np.arange(40), first).mean() >= 0.9
+    H = rift.rigid_ransac(qc[first], m[first], c["reproj_px"], c["max_angle_deg"])
+    assert H is not None and np.allclose(H[:2, 2], [2500.0, 1700.0], atol=3.0)
+    assert rift.votes(qc, m, cell, sim, 300 * math.sqrt(2), 1.0, c, 0) == []
+
+
 def test_pucallpa_true_pose_rescued_by_the_guided_rematch(shared_data):
     """Landsat Pucallpa (bench_devset, checking half): the 1990 SWIR crop on the 2015 map; its
     true pose (rotation 170) had 4 inliers at log10 NFA +6.5, 11th of 36 rotations, and stayed
