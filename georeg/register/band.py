@@ -200,8 +200,8 @@ def border_fill(band: np.ndarray, mask: np.ndarray) -> np.ndarray:
     corners are JPEG-noisy zeros, not exact ones): pixels whose 5 x 5 mean is within
     ``FILL_LEVEL`` of the range above a near-zero minimum, connected to the image's edge,
     grown by 3 px (the compression's ringing). Empty when that is under ``FILL_MIN`` of the
-    image. Treated as content, its edge made the strongest structure of a SRIF query: session
-    34's 130-reference stand-in of issue 34's unseen case."""
+    image. Treated as content, its edge is structure the map does not have (SRIF's rotated
+    query JPEGs: session 34)."""
     h, w = band.shape
     none = np.zeros((h, w), bool)
     if not mask.any() or min(h, w) < 8:
@@ -212,12 +212,21 @@ def border_fill(band: np.ndarray, mask: np.ndarray) -> np.ndarray:
         return none
     mean = cv2.blur(np.where(mask, band, lo).astype(np.float32), (5, 5))
     near = (mean <= lo + FILL_LEVEL * (hi - lo)).astype(np.uint8)
-    n, lab = cv2.connectedComponents(near, connectivity=4)
+    _, lab = cv2.connectedComponents(near, connectivity=4)
     edge = np.unique(np.r_[lab[0], lab[-1], lab[:, 0], lab[:, -1]])
     fill = np.isin(lab, edge[edge > 0])
     if fill.mean() < FILL_MIN:
         return none
     return cv2.dilate(fill.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+
+
+def _without_fill(band: np.ndarray, mask: np.ndarray, nodata: float | None, info: dict[str, Any]) -> np.ndarray:
+    """``mask`` without the border fill of a file that states no nodata (``info["fill_fraction"]``)."""
+    if nodata is not None:
+        return mask
+    fill = border_fill(band, mask)
+    info["fill_fraction"] = round(float(fill.mean()), 4)
+    return mask & ~fill
 
 
 def select_band(cube: Cube, spec: Any) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
@@ -234,20 +243,14 @@ def select_band(cube: Cube, spec: Any) -> tuple[np.ndarray, np.ndarray, dict[str
             cnt += m
         band = np.where(cnt > 0, acc / np.maximum(cnt, 1), np.nan).astype(np.float32)
         mask = cnt > 0
-        if cube.nodata is None:  # as for one band below
-            fill = border_fill(band, mask)
-            mask &= ~fill
-            info["fill_fraction"] = round(float(fill.mean()), 4)
+        mask = _without_fill(band, mask, cube.nodata, info)
         info.update(index=None, wavelength_nm=None, bands_used=cube.count)
         return band, mask, info
     idx = resolve_band(cube, bs)
     assert idx is not None
     band = cube.read_band(idx)
     mask = valid_mask(band, cube.nodata)
-    if cube.nodata is None:  # a file without nodata: its dark fill, if any, is not the scene
-        fill = border_fill(band, mask)
-        mask &= ~fill
-        info["fill_fraction"] = round(float(fill.mean()), 4)
+    mask = _without_fill(band, mask, cube.nodata, info)
     wl = None if cube.wavelengths_nm is None else float(cube.wavelengths_nm[idx])
     info.update(index=idx, wavelength_nm=wl)
     if bs.kind in ("wavelength", "auto") and wl is not None:
