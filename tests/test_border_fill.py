@@ -58,3 +58,14 @@ def test_srif_query_fill_matches_its_valid_area(shared_data):
         fill = border_fill(q.astype(np.float32), np.ones(q.shape, bool))
         assert (~ref).mean() > 0.1
         assert np.mean(fill != ~ref) < 0.015
+
+
+def test_enmap_lakes_are_not_fill(shared_data):
+    """A float cube without nodata (the EnMAP Potsdam tile): its lakes touch the edge and are
+    near zero in the SWIR, but only an 8-bit file's border is taken for fill."""
+    p = shared_data / "enmap_potsdam" / "enmap_potsdam_mosaic_subset.tif"
+    cube = open_query(p)
+    assert cube.nodata is None
+    band, mask, info = select_band(cube, "1650nm")
+    assert "fill_fraction" not in info
+    assert mask.sum() == np.isfinite(band).sum()
