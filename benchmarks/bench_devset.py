@@ -228,6 +228,14 @@ def pack(sizes: list[tuple[int, int]]) -> tuple[list[tuple[int, int]], tuple[int
     return offs, (r + shelf, width)
 
 
+def truth_grid(q: np.ndarray) -> np.ndarray:
+    """The truth's 12 x 12 grid of query px (x, y), its valid points only."""
+    n_r, n_c = q.shape
+    uu, vv = np.meshgrid(np.linspace(2, n_c - 3, 12), np.linspace(2, n_r - 3, 12))
+    qp = np.c_[uu.ravel(), vv.ravel()]
+    return qp[q[qp[:, 1].astype(int), qp[:, 0].astype(int)] > 0]
+
+
 def srif_query(mod: str, i: int, q: np.ndarray, A0: np.ndarray, places: list[np.ndarray],
                map_scene: str, outside: bool = False, audit: dict[str, Any] | None = None) -> bx.Query:  # fmt: skip
     """A SRIF query with its truth grid (12 x 12 valid query px) and the map px of that grid at
@@ -238,10 +246,7 @@ def srif_query(mod: str, i: int, q: np.ndarray, A0: np.ndarray, places: list[np.
     truth = tmap = None
     alts: list[np.ndarray] = []
     if places:
-        n_r, n_c = q.shape
-        uu, vv = np.meshgrid(np.linspace(2, n_c - 3, 12), np.linspace(2, n_r - 3, 12))
-        qp = np.c_[uu.ravel(), vv.ravel()]
-        qp = qp[q[qp[:, 1].astype(int), qp[:, 0].astype(int)] > 0]
+        qp = truth_grid(q)
         rp = bx.matching.apply_h(np.linalg.inv(A0), qp)
         alts = [bx.matching.apply_h(P, rp) for P in places]
         truth, tmap = qp, alts[0]
@@ -399,9 +404,7 @@ def _lazy_place(q: bx.Query, res: dict[str, Any]) -> bool:
         if T is None:
             continue
         P = np.array([[1, 0, c], [0, 1, r], [0, 0, 1.0]]) @ T
-        uu, vv = np.meshgrid(np.linspace(2, n_c - 3, 12), np.linspace(2, n_r - 3, 12))
-        qp = np.c_[uu.ravel(), vv.ravel()]
-        qp = qp[q.bands["band"][qp[:, 1].astype(int), qp[:, 0].astype(int)] > 0]
+        qp = truth_grid(q.bands["band"])
         alt = bx.matching.apply_h(P, bx.matching.apply_h(np.linalg.inv(A0), qp))
         if q.truth is None:
             q.truth, q.truth_map = qp, alt
