@@ -311,12 +311,14 @@ def test_pucallpa_second_pass_keeps_to_the_refused_candidates_place(shared_data)
     (8 px from the truth) is vetoed by the orthophoto check and rift then finds a look-alike
     meander 186 px away: refused, as at another place (``fuse.elsewhere``). Crop 0: the second
     pass's pose lies where the refused one did and registers. (The structure check, off for
-    crop 1 here, refuses that look-alike too: z 1.55 < ``structure_z_min``.)"""
+    crop 1 here, refuses that look-alike too: z 1.55 < ``structure_z_min``; and with the map
+    windows' keypoints as dense as the query's, ``max_kp`` 20,000 since session 35, rift finds
+    no pose there at all: crop 1 runs at the 5,000 that found it.)"""
     if not (shared_data / "swir_dates" / "landsat_pucallpa" / "2015.tif").exists():
         pytest.skip("Landsat Pucallpa absent")
     bx, run = _control_runner(11)
     for name, registered in (("puc_2015_on_2005_1_rg", False), ("puc_2015_on_2005_0_rg", True)):
-        res, q, sc = run(name, {} if registered else {"structure_z_min": 0})
+        res, q, sc = run(name, {} if registered else {"structure_z_min": 0, "max_kp": 5000})
         assert res["second_pass"], name
         assert res["accepted"] is registered, (name, res["second_pass"])
         if registered:
@@ -502,20 +504,24 @@ def test_pucallpa_true_pose_rescued_by_the_guided_rematch(shared_data):
     """Landsat Pucallpa (bench_devset, checking half): the 1990 SWIR crop on the 2015 map; its
     true pose (rotation 170) had 4 inliers at log10 NFA +6.5, 11th of 36 rotations, and stayed
     unregistered; the guided re-match finds 8 of the 33 cells its fit did not use where the
-    other rotations' chance poses hit 3 %. The map with the crop's place blanked stays refused."""
+    other rotations' chance poses hit 3 %. The map with the crop's place blanked stays refused.
+    Measured with the map's windows capped at 5,000 keypoints, as here: at session 35's 20,000
+    it is not rescued: the workflow's best rescue lies at rotation 220, log10 NFA 0.0
+    (docs/experiments/2026-11-30-session35.md)."""
     if not (shared_data / "swir_dates" / "landsat_pucallpa" / "2015.tif").exists():
         pytest.skip("Landsat Pucallpa absent")
     q, sc = _pucallpa("puc_2015_on_1990_0_1.6um")
     u8 = next(iter(q.bands.values()))
-    off = rift.register(u8, sc.map_gray, q.gsd / sc.map_gsd, _acc(), {"rescue_log_nfa_max": 0})
+    kp = {"max_kp": 5000}
+    off = rift.register(u8, sc.map_gray, q.gsd / sc.map_gsd, _acc(), {**kp, "rescue_log_nfa_max": 0})
     assert not off["accepted"] and "rescue" not in off
-    r = rift.register(u8, sc.map_gray, q.gsd / sc.map_gsd, _acc(), {})
+    r = rift.register(u8, sc.map_gray, q.gsd / sc.map_gsd, _acc(), kp)
     assert r["accepted"] and "rescued" in r["decision"]["reason"], r["decision"]
     assert r["rescue"]["log10_nfa"] < rift.DEFAULTS["rescue_log_nfa_max"]
     err = np.linalg.norm(matching.apply_h(r["H"], q.truth) - q.truth_map, axis=1)  # map px
     assert np.median(err) <= 5.0, np.median(err)
     q, sc = _pucallpa("puc_2015_on_1990_0_1.6um_blanked")
-    b = rift.register(next(iter(q.bands.values())), sc.map_gray, q.gsd / sc.map_gsd, _acc(), {})
+    b = rift.register(next(iter(q.bands.values())), sc.map_gray, q.gsd / sc.map_gsd, _acc(), kp)
     assert not b["accepted"] and b["rescue"]["log10_nfa"] > rift.DEFAULTS["rescue_log_nfa_max"]
 
 
