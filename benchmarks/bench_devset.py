@@ -499,8 +499,7 @@ METHODS: dict[str, dict[str, Any]] = {
     "src_rift": {"rift": {}},
     "src_rift12": {"rift": {"rotations": 12, "max_angle_deg": 20.0}},  # v3: 30 deg steps
     "src_rift_novote": {"rift": {"vote_regions": 0}},  # without the vote regions (session 34)
-    "src_rift_kp10k": {"rift": {"max_kp": 10000}},  # denser map windows (session 35 probe)
-    "src_rift_kp20k": {"rift": {"max_kp": 20000}},
+    "src_rift_kp5k": {"rift": {"max_kp": 5000}},  # the map windows' density before session 35
     "wf_rift_kp5k": {"pipeline": {"rift": {"enabled": True, "max_kp": 5000}, "learned": {"enabled": False}},
                      "bands": 1},  # the map windows' density before session 35
     # the workflow with the rift source enabled (fuse.SOURCES: runs when nothing else accepted)

@@ -42,8 +42,8 @@ DEFAULTS: dict[str, Any] = {
     "kp_per_mpx": 20000,  # keypoints per Mpx of valid image
     "max_kp": 20000,  # ... at most this many an image or map window: a map window of 1024 px
     # (+ a patch each side) capped at 5,000 was sampled 4x sparser than a query (SRIF
-    # optical-infrared on the 130-reference mosaic, rift alone, GSD known: 33/48 -> 41/48
-    # tuning, 0 false; session 35)
+    # optical-infrared on the 130-reference mosaic, rift alone, GSD known: 33/48; 31/48 ->
+    # 42/49; 44/48, 0 false; Landsat Pucallpa 24/28; 25/28 -> 24/28; 23/28; session 35)
     "grid": 8,  # spread: at most max_kp / grid^2 keypoints per grid cell
     "patch": 72,  # descriptor patch side (px, at the map GSD)
     "cells": 6,  # patch cells per side
