@@ -536,6 +536,28 @@ def test_map_matcher_kept_for_the_same_map():
     assert rift.map_matcher(md, {**c, "nprobe": 8}) is not a
 
 
+def test_map_matcher_keeps_its_index_centroids_on_disk(tmp_path):
+    """The approximate search's k-means centroids are written once and read back by the next
+    process's matcher: the same neighbours as training again; centroids of another shape are
+    not used."""
+    rng = np.random.default_rng(1)
+    md = rng.normal(size=(5000, 32)).astype(np.float32)
+    md /= np.linalg.norm(md, axis=1, keepdims=True)
+    dq = md[rng.choice(5000, 300)] + 0.05 * rng.normal(size=(300, 32)).astype(np.float32)
+    c = {"exact_max": 0, "nprobe": 4}
+    path = tmp_path / "rift_x_ivf0.npy"
+    trained = rift.MapMatcher(md, c, path).nearest(dq, 3)
+    assert path.exists()
+    kept = np.load(path)
+    assert np.array_equal(rift.MapMatcher(md, c, path).nearest(dq, 3), trained)
+    assert np.array_equal(rift.MapMatcher(md, c).nearest(dq, 3), trained)
+    np.save(path, md[: len(kept)])  # other centroids of the right shape: read, not trained again
+    assert not np.array_equal(rift.MapMatcher(md, c, path).nearest(dq, 3), trained)
+    np.save(path, kept[:-1])  # the wrong shape: trained again and written again
+    assert np.array_equal(rift.MapMatcher(md, c, path).nearest(dq, 3), trained)
+    assert np.array_equal(np.load(path), kept)
+
+
 def test_structure_check_scores_the_true_pose_not_a_moved_one():
     """The phase-congruency structure of a rotated, contrast-inverted crop agrees with the map
     at its true pose far beyond random poses nearby (z >> 3), at a pose moved by half the crop

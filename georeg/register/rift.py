@@ -407,14 +407,35 @@ def map_features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.n
 class MapMatcher:
     """Nearest map descriptor of each query descriptor (largest dot product of unit vectors):
     exact by chunks while queries x map products stay below ``exact_max``, else a faiss IVF index
-    (inner product, ``4 sqrt(n)`` lists (at most n / 39), ``nprobe`` visited, k-means seeded) built once per map."""
+    (inner product, ``4 sqrt(n)`` lists (at most n / 39), ``nprobe`` visited, k-means seeded) built once per map.
+    ``centroids_path``: the k-means centroids kept there (``.npy``, written atomically) and read
+    back instead of training again (the index is then the same: the same lists, the same
+    vectors in each; the training was most of a query's index cost, 23 of 26 s on the 12.8 Mpx
+    SRIF stand-in, paid by every ``snakemake`` job)."""
 
-    def __init__(self, md: np.ndarray, conf: dict[str, Any]) -> None:
+    def __init__(self, md: np.ndarray, conf: dict[str, Any], centroids_path: Path | None = None) -> None:
         c = rift_conf(conf)
         self.md = np.ascontiguousarray(md, np.float32)
         self.exact_max = float(c["exact_max"])
         self._ivf = None
         self._conf = c
+        self.centroids_path = centroids_path
+
+    def _centroids(self, nlist: int) -> np.ndarray | None:
+        """The kept centroids, None when absent or not of this map's shape."""
+        p = self.centroids_path
+        if p is None or not p.exists():
+            return None
+        try:
+            cen = np.load(p)
+        except (OSError, ValueError) as e:
+            log.warning("rift: index centroids %s unreadable (%s): training again", p, e)
+            return None
+        if cen.shape != (nlist, self.md.shape[1]) or cen.dtype != np.float32:
+            log.warning("rift: index centroids %s have shape %s, not (%d, %d): training again",
+                        p, cen.shape, nlist, self.md.shape[1])  # fmt: skip
+            return None
+        return cen
 
     def _index(self):
         if self._ivf is None:
@@ -424,8 +445,18 @@ class MapMatcher:
             nlist = max(1, min(int(4 * math.sqrt(n)), n // 39))  # faiss: >= 39 points a list
             quant = faiss.IndexFlatIP(d)
             ivf = faiss.IndexIVFFlat(quant, d, nlist, faiss.METRIC_INNER_PRODUCT)
-            ivf.cp.seed = int(self._conf["seed"])
-            ivf.train(self.md)
+            cen = self._centroids(nlist)
+            if cen is None:
+                ivf.cp.seed = int(self._conf["seed"])
+                ivf.train(self.md)
+                if self.centroids_path is not None:
+                    from georeg.io.atomic import atomic_path
+
+                    with atomic_path(self.centroids_path) as tmp, open(tmp, "wb") as f:
+                        np.save(f, quant.reconstruct_n(0, nlist))
+            else:
+                quant.add(cen)
+                ivf.is_trained = True
             ivf.add(self.md)
             ivf.nprobe = int(self._conf["nprobe"])
             self._ivf = ivf
@@ -449,14 +480,15 @@ class MapMatcher:
 _LAST_MATCHER: list[tuple[np.ndarray, tuple[Any, ...], MapMatcher]] = []
 
 
-def map_matcher(md: np.ndarray, c: dict[str, Any]) -> MapMatcher:
+def map_matcher(md: np.ndarray, c: dict[str, Any], centroids_path: Path | None = None) -> MapMatcher:
     """The map's matcher, the last one kept: its faiss index (k-means over the map's
     descriptors, seeded) is the same for every query of that map (one benchmark process or
-    batch: SRIF's 40-reference mosaic trained it again for every query, most of its 96 CPU s)."""
+    batch: SRIF's 40-reference mosaic trained it again for every query, most of its 96 CPU s);
+    ``centroids_path``: where its k-means centroids are kept for other processes (``MapMatcher``)."""
     key = (c["exact_max"], c["nprobe"], c["seed"])
     if _LAST_MATCHER and _LAST_MATCHER[0][0] is md and _LAST_MATCHER[0][1] == key:
         return _LAST_MATCHER[0][2]
-    mm = MapMatcher(md, c)
+    mm = MapMatcher(md, c, centroids_path)
     _LAST_MATCHER[:] = [(md, key, mm)]
     return mm
 
@@ -638,6 +670,7 @@ def register(
     area: float | None = None,
     max_scale: float = 1.0,
     n_vote: int | None = None,
+    centroids_path: Path | None = None,
 ) -> dict[str, Any]:
     """The query (uint8, 0 = nodata) against the map (uint8, 0 = nodata): ``scale`` = map px per
     query px (the known GSD ratio); ``map_feats`` / ``area``: the map's features and valid pixels
@@ -654,12 +687,13 @@ def register(
     guessed GSD): each rotation also gets a similarity fit, its scale within 1 / max_scale ..
     max_scale, counted like the rigid one, and scored and re-matched when its scale is more
     than ``RIGID_HOLDS`` off. ``n_vote``: the vote regions (``votes``) each rotation and fit
-    also fits, each one test (None: ``n_votes`` of the map's valid pixels)."""
+    also fits, each one test (None: ``n_votes`` of the map's valid pixels). ``centroids_path``:
+    where the map matcher's index keeps its k-means (``MapMatcher``)."""
     from georeg.register import acceptance
 
     c = rift_conf(conf)
     mxy, md = map_feats if map_feats is not None else map_features(map_u8, c)
-    mm = map_matcher(md, c)
+    mm = map_matcher(md, c, centroids_path)
     kc = n_candidates(len(md), c)  # nearest map descriptors scored per query descriptor
     kh = min(int(c["candidates"]), kc)  # of which the nearest kh make the hypotheses
     acc = {**acc_conf, "log_nfa_max": min(float(acc_conf.get("log_nfa_max", 0.0)), float(c["log_nfa_max"])),
@@ -1155,6 +1189,18 @@ def read_map_features(read_window: Any, bounds: tuple[float, float, float, float
     return np.vstack(xys), np.vstack(ds), area, G
 
 
+def feature_cache(view: Any, bounds: tuple[float, float, float, float], g: float,
+                  c: dict[str, Any], aspect: float = 1.0) -> tuple[str, Path | None]:
+    """The key of the map features ``cached_map_features`` keeps (the orthophoto, ``bounds``,
+    ``g``, the view's feature GSD, ``FEATURE_KEYS``, ``CACHE_VERSION``, ``aspect``) and their file
+    (None: no ``view.cache_dir``)."""
+    blob = json.dumps([view.ortho_id, [round(float(v), 6) for v in bounds], round(g, 9),
+                       round(float(view.source.gsd_m), 9), [c[k] for k in FEATURE_KEYS],
+                       CACHE_VERSION, *([round(aspect, 6)] if aspect != 1.0 else [])])  # fmt: skip
+    key = hashlib.sha256(blob.encode()).hexdigest()[:20]
+    return key, (Path(view.cache_dir) / f"{c['kind']}_{key}.npz" if view.cache_dir else None)
+
+
 def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g: float,
                         conf: dict[str, Any], aspect: float = 1.0,
                         ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray] | None:  # fmt: skip
@@ -1165,16 +1211,11 @@ def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g:
     ``FEATURE_KEYS``, ``CACHE_VERSION`` and ``aspect``. Returns as ``read_map_features`` (stored at full
     precision: a result does not depend on whether they were computed now or read back)."""
     c = rift_conf(conf)
-    oid = view.ortho_id
-    if oid is None:
+    if view.ortho_id is None:
         return read_map_features(view.read_window, bounds, g, c, aspect)
-    blob = json.dumps([oid, [round(float(v), 6) for v in bounds], round(g, 9),
-                       round(float(view.source.gsd_m), 9), [c[k] for k in FEATURE_KEYS],
-                       CACHE_VERSION, *([round(aspect, 6)] if aspect != 1.0 else [])])  # fmt: skip
-    key = hashlib.sha256(blob.encode()).hexdigest()[:20]
+    key, path = feature_cache(view, bounds, g, c, aspect)
     if key in _MEMO:
         return _MEMO[key]
-    path = Path(view.cache_dir) / f"{c['kind']}_{key}.npz" if view.cache_dir else None
     if path is not None and path.exists():
         try:
             with np.load(path) as z:
@@ -1222,9 +1263,11 @@ def _search(gsd: float, u8: np.ndarray, view: Any, b: tuple[float, ...], c: dict
     if got is None:
         return {}, None, None
     mxy, md, area, G = got
+    path = feature_cache(view, b, g, c, aspect)[1] if view.ortho_id is not None else None
+    cen = None if path is None else path.with_name(f"{path.stem}_ivf{int(c['seed'])}.npy")
     r = register(u8, None, gsd / g, conf.get("acceptance") or {}, c, map_feats=(mxy, md),
                  gsd_m=gsd, map_gsd_m=g, tests_before=tests_before, area=area,
-                 max_scale=max_scale, n_vote=n_vote)  # fmt: skip
+                 max_scale=max_scale, n_vote=n_vote, centroids_path=cen)  # fmt: skip
     H = None if r["H"] is None else G @ r["H"]
     rec = {"ran": True, "candidates": int(r["tests"]), "accepted": r["accepted"],
            "tests_before": tests_before, "inliers": r["inliers"],
