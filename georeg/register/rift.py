@@ -445,6 +445,7 @@ class MapMatcher:
             nlist = max(1, min(int(4 * math.sqrt(n)), n // 39))  # faiss: >= 39 points a list
             quant = faiss.IndexFlatIP(d)
             ivf = faiss.IndexIVFFlat(quant, d, nlist, faiss.METRIC_INNER_PRODUCT)
+            t0 = time.perf_counter()
             cen = self._centroids(nlist)
             if cen is None:
                 ivf.cp.seed = int(self._conf["seed"])
@@ -458,6 +459,9 @@ class MapMatcher:
                 quant.add(cen)
                 ivf.is_trained = True
             ivf.add(self.md)
+            log.info("rift: search index of %d map descriptors (%d lists, %s) in %.1f s", n, nlist,
+                     "centroids trained" if cen is None else f"centroids read from {self.centroids_path}",
+                     time.perf_counter() - t0)  # fmt: skip
             ivf.nprobe = int(self._conf["nprobe"])
             self._ivf = ivf
         return self._ivf
