@@ -204,6 +204,13 @@ def test_map_features_cached_per_orthophoto(tmp_path, monkeypatch):
     _, again = rift.source(qi, view, [], conf)
     assert len(reads) == n_reads  # read back, not computed
     assert again["accepted"] and again["per_rotation"] == first["per_rotation"]
+    # the approximate search's index: its centroids kept beside the features, the same decisions
+    approx = {**conf, "rift": {**conf["rift"], "exact_max": 0}}
+    _, trained = rift.source(qi, view, [], approx)
+    assert len(list(tmp_path.glob("rift_*_ivf0.npy"))) == 1
+    rift._LAST_MATCHER.clear()
+    _, read = rift.source(qi, view, [], approx)
+    assert read["per_rotation"] == trained["per_rotation"] and read["accepted"] == trained["accepted"]
     # the map features alone from here (the source's bounds and GSD): no identity, computed,
     # the same as read back; another identity or feature setting, computed and kept again
     b, c = tuple(float(v) for v in src.bounds), rift.rift_conf(conf["rift"])
