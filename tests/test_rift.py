@@ -563,6 +563,9 @@ def test_map_matcher_keeps_its_index_centroids_on_disk(tmp_path):
     np.save(path, kept[:-1])  # the wrong shape: trained again and written again
     assert np.array_equal(rift.MapMatcher(md, c, path).nearest(dq, 3), trained)
     assert np.array_equal(np.load(path), kept)
+    for junk in (b"", b"not a numpy file"):  # unreadable: trained again
+        path.write_bytes(junk)
+        assert np.array_equal(rift.MapMatcher(md, c, path).nearest(dq, 3), trained)
 
 
 def test_structure_check_scores_the_true_pose_not_a_moved_one():

@@ -428,7 +428,7 @@ class MapMatcher:
             return None
         try:
             cen = np.load(p)
-        except (OSError, ValueError) as e:
+        except (OSError, ValueError, EOFError) as e:
             log.warning("rift: index centroids %s unreadable (%s): training again", p, e)
             return None
         if cen.shape != (nlist, self.md.shape[1]) or cen.dtype != np.float32:
