@@ -453,8 +453,8 @@ class MapMatcher:
                 if self.centroids_path is not None:
                     from georeg.io.atomic import atomic_path
 
-                    with atomic_path(self.centroids_path) as tmp, open(tmp, "wb") as f:
-                        np.save(f, quant.reconstruct_n(0, nlist))
+                    with atomic_path(self.centroids_path) as tmp:  # keeps the .npy suffix
+                        np.save(tmp, quant.reconstruct_n(0, nlist))
             else:
                 quant.add(cen)
                 ivf.is_trained = True
@@ -1197,12 +1197,13 @@ def feature_cache(view: Any, bounds: tuple[float, float, float, float], g: float
                   c: dict[str, Any], aspect: float = 1.0) -> tuple[str, Path | None]:
     """The key of the map features ``cached_map_features`` keeps (the orthophoto, ``bounds``,
     ``g``, the view's feature GSD, ``FEATURE_KEYS``, ``CACHE_VERSION``, ``aspect``) and their file
-    (None: no ``view.cache_dir``)."""
+    (None: no ``view.cache_dir`` or no ``view.ortho_id``)."""
     blob = json.dumps([view.ortho_id, [round(float(v), 6) for v in bounds], round(g, 9),
                        round(float(view.source.gsd_m), 9), [c[k] for k in FEATURE_KEYS],
                        CACHE_VERSION, *([round(aspect, 6)] if aspect != 1.0 else [])])  # fmt: skip
     key = hashlib.sha256(blob.encode()).hexdigest()[:20]
-    return key, (Path(view.cache_dir) / f"{c['kind']}_{key}.npz" if view.cache_dir else None)
+    kept = view.cache_dir and view.ortho_id is not None
+    return key, (Path(view.cache_dir) / f"{c['kind']}_{key}.npz" if kept else None)
 
 
 def cached_map_features(view: Any, bounds: tuple[float, float, float, float], g: float,
@@ -1267,7 +1268,7 @@ def _search(gsd: float, u8: np.ndarray, view: Any, b: tuple[float, ...], c: dict
     if got is None:
         return {}, None, None
     mxy, md, area, G = got
-    path = feature_cache(view, b, g, c, aspect)[1] if view.ortho_id is not None else None
+    path = feature_cache(view, b, g, c, aspect)[1]
     cen = None if path is None else path.with_name(f"{path.stem}_ivf{int(c['seed'])}.npy")
     r = register(u8, None, gsd / g, conf.get("acceptance") or {}, c, map_feats=(mxy, md),
                  gsd_m=gsd, map_gsd_m=g, tests_before=tests_before, area=area,
