@@ -452,6 +452,28 @@ def test_guided_rematch_confirms_the_true_pose_not_a_moved_one():
     assert moved["hits"] <= 0.15 * moved["cells"] and moved["log10_p"] > c["confirm_log_p_max"], moved
 
 
+def test_split_count_confirms_a_pose_a_few_px_off_and_not_a_moved_one():
+    """The true pose turned 4 deg about the crop's centre (its edges 5-8 px off): few cells
+    land within reproj_px of it, but a rigid pose refit on half the cells' guided matches puts
+    most of the other half's on their place; moved by 60 px, neither count confirms."""
+    m = _scene(1)
+    q, truth = _query(m, (170.0, 150.0), 37.0, 160)
+    c = rift.rift_conf({})
+    r = rift.register(q, m, 1.0, _acc(), c)
+    mxy, md = rift.map_features(m, c)
+    qxy, qd, A = next((x, d, a) for ang, x, d, a in rift.rotated_features(q, 1.0, c) if ang == r["angle_deg"])
+    ctr = matching.apply_h(truth, np.array([[80.0, 80.0]]))[0]
+    t = math.radians(4.0)
+    R = np.array([[math.cos(t), -math.sin(t), 0], [math.sin(t), math.cos(t), 0], [0, 0, 1.0]])
+    T = np.array([[1, 0, ctr[0]], [0, 1, ctr[1]], [0, 0, 1.0]])
+    turned = rift.confirm(T @ R @ np.linalg.inv(T) @ truth, qxy, qd, A, mxy, md, c)
+    moved = rift.confirm(np.array([[1, 0, 60], [0, 1, 0], [0, 0, 1.0]]) @ truth, qxy, qd, A, mxy, md, c)
+    assert turned["hits"] <= 0.25 * turned["cells"], turned
+    assert turned["split"]["hits"] >= 0.5 * turned["split"]["cells"], turned
+    assert turned["split"]["log10_p"] < turned["log10_p"] - 5, turned
+    assert moved["split"]["log10_p"] > c["confirm_log_p_max"] - 1, moved
+
+
 def test_rescue_uses_the_hit_rate_of_far_rotations():
     """The rescue's null: the hit rate measured at the rotations >= 25 deg away (one hit added),
     never below the disc's area ratio; the multiplicity is the tests counted."""
