@@ -933,8 +933,8 @@ def confirm(H: np.ndarray, qxy: np.ndarray, qd: np.ndarray, A: np.ndarray, mxy: 
 
 def _split_count(q: np.ndarray, m: np.ndarray, key: np.ndarray, H0: np.ndarray, c: dict[str, Any]) -> dict[str, Any]:
     """``confirm``'s guided matches (one a cell: canvas px ``q``, map px ``m``) in two
-    checkerboard halves of the query's cells: a rigid pose fit to one half's (``rigid_ransac``,
-    then least squares; ``H0`` when it finds none), hits counted in the other half. Those cells
+    checkerboard halves of the query's cells: a rigid pose at ``H0``'s scale fit to one half's
+    (``rigid_ransac``, then least squares; ``H0`` when it finds none), hits counted in the other half. Those cells
     did not make that pose: the binomial tail at the disc's chance rate holds for a refit pose
     too. A pose a few px off (the rotation step's 3 deg; SRIF optical-optical 107, 6.9 px: 10
     of 348 cells within reproj_px of it) is corrected by the refit (26 of 174). Returns the
@@ -944,9 +944,11 @@ def _split_count(q: np.ndarray, m: np.ndarray, key: np.ndarray, H0: np.ndarray, 
     e, pe = float(c["reproj_px"]), _disc_ratio(c)
     half = ((key // 1_000_003 + key % 1_000_003) % 2).astype(bool)
     out: dict[str, Any] = {"cells": 0, "hits": 0, "log10_p": 0.0}
+    S = np.diag([math.sqrt(abs(np.linalg.det(H0[:2, :2])))] * 2 + [1.0])  # the pose's scale kept
+    qs = q * S[0, 0]
     for fit in (half, ~half):
-        G = rigid_ransac(q[fit], m[fit], e, float(c["max_angle_deg"])) if fit.sum() >= 2 else None
-        G = H0 if G is None else refit(G, q[fit], m[fit], e)
+        G = rigid_ransac(qs[fit], m[fit], e, float(c["max_angle_deg"])) if fit.sum() >= 2 else None
+        G = H0 if G is None else refit(G, qs[fit], m[fit], e) @ S
         hits, n = int((np.linalg.norm(apply_h(G, q[~fit]) - m[~fit], axis=1) <= e).sum()), int((~fit).sum())
         lp = float(binom.logsf(hits - 1, n, pe) / math.log(10)) + math.log10(2) if hits else 0.0
         if lp < out["log10_p"]:
