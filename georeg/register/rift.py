@@ -891,9 +891,10 @@ def confirm(H: np.ndarray, qxy: np.ndarray, qd: np.ndarray, A: np.ndarray, mxy: 
     among cells - 2 (the two cells a rigid pose can be fit to; 0 up to 2 hits); with ``exclude``
     (cell keys: those the pose was fit to), the tail of the hits among the other cells, evidence
     the fit did not use; without it also ``split`` (``_split_count``: the pose refit on half the
-    cells, hits counted in the other half). ``tree``: the map keypoints' cKDTree, when built already. On a mosaic of
-    120 SRIF references (probed at 24 px), chance poses down to log10 NFA -9 hit 1-3 of 55-85 cells;
-    true ones 9-41 of 52-107, where their nearest map descriptors over the whole map missed."""
+    cells, hits counted in the other half). ``tree``: the map keypoints' cKDTree, when built
+    already. On a mosaic of 120 SRIF references (probed at 24 px), chance poses down to log10
+    NFA -9 hit 1-3 of 55-85 cells; true ones 9-41 of 52-107, where their nearest map
+    descriptors over the whole map missed."""
     from scipy.spatial import cKDTree
     from scipy.stats import binom
 
@@ -934,9 +935,9 @@ def confirm(H: np.ndarray, qxy: np.ndarray, qd: np.ndarray, A: np.ndarray, mxy: 
 def _split_count(q: np.ndarray, m: np.ndarray, key: np.ndarray, H0: np.ndarray, c: dict[str, Any]) -> dict[str, Any]:
     """``confirm``'s guided matches (one a cell: canvas px ``q``, map px ``m``) in two
     checkerboard halves of the query's cells: a rigid pose at ``H0``'s scale fit to one half's
-    (``rigid_ransac``, then least squares; ``H0`` when it finds none), hits counted in the other half. Those cells
-    did not make that pose: the binomial tail at the disc's chance rate holds for a refit pose
-    too. A pose a few px off (the rotation step's 3 deg; SRIF optical-optical 107, 6.9 px: 10
+    (``rigid_ransac``, then least squares; ``H0`` when it finds none), hits counted in the
+    other half. Those cells did not make that pose: the binomial tail at the disc's chance rate
+    holds for a refit pose too. A pose a few px off (the rotation step's 3 deg; SRIF optical-optical 107, 6.9 px: 10
     of 348 cells within reproj_px of it) is corrected by the refit (26 of 174). Returns the
     better fold's ``cells``, ``hits`` and ``log10_p`` (+ log10 2, the two folds)."""
     from scipy.stats import binom
