@@ -455,7 +455,8 @@ def test_guided_rematch_confirms_the_true_pose_not_a_moved_one():
 def test_split_count_confirms_a_pose_a_few_px_off_and_not_a_moved_one():
     """The true pose turned 4 deg about the crop's centre (its edges 5-8 px off): few cells
     land within reproj_px of it, but a rigid pose refit on half the cells' guided matches puts
-    most of the other half's on their place; moved by 60 px, neither count confirms."""
+    most of the other half's on their place, and that refit is the true pose; moved by 60 px,
+    neither count confirms."""
     m = _scene(1)
     q, truth = _query(m, (170.0, 150.0), 37.0, 160)
     c = rift.rift_conf({})
@@ -471,6 +472,9 @@ def test_split_count_confirms_a_pose_a_few_px_off_and_not_a_moved_one():
     assert turned["hits"] <= 0.25 * turned["cells"], turned
     assert turned["split"]["hits"] >= 0.5 * turned["split"]["cells"], turned
     assert turned["split"]["log10_p"] < turned["log10_p"] - 5, turned
+    corners = np.array([[0, 0], [159, 0], [0, 159], [159, 159.0]])
+    err = np.linalg.norm(matching.apply_h(turned["split"]["pose"] @ A, corners) - matching.apply_h(truth, corners), axis=1)
+    assert err.max() < 2.0, err  # the refit is the pose (the turn left the corners 5-8 px off)
     assert moved["split"]["log10_p"] > c["confirm_log_p_max"] - 1, moved
 
 

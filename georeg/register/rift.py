@@ -792,7 +792,11 @@ def register(
     if best["accepted"] and float(c["confirm_log_p_max"]) < 0:
         best["confirm"] = conf_ = confirm(best["H"], *seen, mxy, md, c, tree=tree)
         lp_max = float(c["confirm_log_p_max"])  # the split count: a second test at a tenth of the level
-        if not (conf_["log10_p"] < lp_max or conf_["split"]["log10_p"] < lp_max - 1):
+        G = conf_["split"].pop("pose", None)
+        if not conf_["log10_p"] < lp_max and conf_["split"]["log10_p"] < lp_max - 1:
+            best["H"] = G @ seen[2]  # confirmed at its refit only: the refit is the pose
+            conf_["split"]["pose_taken"] = True
+        elif not conf_["log10_p"] < lp_max:
             best["accepted"] = False
             best["decision"] = {**best["decision"], "accepted": False, "reason":
                                 f"not confirmed: {conf_['hits']} of {conf_['cells']} cells found "
@@ -939,7 +943,8 @@ def _split_count(q: np.ndarray, m: np.ndarray, key: np.ndarray, H0: np.ndarray, 
     other half. Those cells did not make that pose: the binomial tail at the disc's chance rate
     holds for a refit pose too. A pose a few px off (the rotation step's 3 deg; SRIF optical-optical 107, 6.9 px: 10
     of 348 cells within reproj_px of it) is corrected by the refit (26 of 174). Returns the
-    better fold's ``cells``, ``hits`` and ``log10_p`` (+ log10 2, the two folds)."""
+    better fold's ``cells``, ``hits``, ``log10_p`` (+ log10 2, the two folds) and ``pose``
+    (canvas px -> map px: its refit pose refit again on every cell's guided match)."""
     from scipy.stats import binom
 
     e, pe = float(c["reproj_px"]), _disc_ratio(c)
@@ -953,7 +958,7 @@ def _split_count(q: np.ndarray, m: np.ndarray, key: np.ndarray, H0: np.ndarray, 
         hits, n = int((np.linalg.norm(apply_h(G, q[~fit]) - m[~fit], axis=1) <= e).sum()), int((~fit).sum())
         lp = float(binom.logsf(hits - 1, n, pe) / math.log(10)) + math.log10(2) if hits else 0.0
         if lp < out["log10_p"]:
-            out = {"cells": n, "hits": hits, "log10_p": lp}
+            out = {"cells": n, "hits": hits, "log10_p": lp, "pose": refit(G @ np.linalg.inv(S), qs, m, e) @ S}
     return out
 
 
