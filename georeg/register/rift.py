@@ -792,11 +792,13 @@ def register(
     if best["accepted"] and float(c["confirm_log_p_max"]) < 0:
         best["confirm"] = conf_ = confirm(best["H"], *seen, mxy, md, c, tree=tree)
         lp_max = float(c["confirm_log_p_max"])  # the split count: a second test at a tenth of the level
-        G = conf_["split"].pop("pose", None)
-        if not conf_["log10_p"] < lp_max and conf_["split"]["log10_p"] < lp_max - 1:
-            best["H"] = G @ seen[2]  # confirmed at its refit only: the refit is the pose
+        refit_pose = conf_["split"].pop("pose", None)
+        if conf_["log10_p"] < lp_max:
+            pass
+        elif conf_["split"]["log10_p"] < lp_max - 1:
+            best["H"] = refit_pose @ seen[2]  # confirmed at its refit only: the refit is the pose
             conf_["split"]["pose_taken"] = True
-        elif not conf_["log10_p"] < lp_max:
+        else:
             best["accepted"] = False
             best["decision"] = {**best["decision"], "accepted": False, "reason":
                                 f"not confirmed: {conf_['hits']} of {conf_['cells']} cells found "
@@ -869,15 +871,13 @@ def rescue(guided: list[dict[str, Any]], tests: int, c: dict[str, Any]) -> dict[
     vote region's pose (``votes``) is held to the far vote regions' rate, the map-wide pool's to
     theirs: a region's chance pose re-matches a crowded place (SRIF optical-infrared 121 on the
     130-reference mosaic: a pooled rate of 0.027 against 0.012 would have lost its true pose)."""
-    from scipy.stats import binom
-
     pe = _disc_ratio(c)
     out: dict[str, Any] = {"log10_nfa": math.inf}
     for g in (g for g in guided if g["hits"] > 0):
         far = [o for o in guided if _angle_gap(o["angle_deg"], g["angle_deg"]) >= NULL_FAR_DEG
                and o.get("vote") == g.get("vote")]  # fmt: skip
         rate = max(pe, (sum(o["hits"] for o in far) + 1) / (sum(o["cells"] for o in far) + 1))
-        lx = float(binom.logsf(g["hits"] - 1, g["cells"], min(rate, 1.0)) / math.log(10)) + math.log10(tests)
+        lx = _log10_tail(g["hits"], g["cells"], min(rate, 1.0)) + math.log10(tests)
         if lx < out["log10_nfa"]:
             out = {**g, "log10_nfa": lx, "hit_rate": rate}
     return out
@@ -900,7 +900,6 @@ def confirm(H: np.ndarray, qxy: np.ndarray, qd: np.ndarray, A: np.ndarray, mxy: 
     NFA -9 hit 1-3 of 55-85 cells; true ones 9-41 of 52-107, where their nearest map
     descriptors over the whole map missed."""
     from scipy.spatial import cKDTree
-    from scipy.stats import binom
 
     e, rad = float(c["reproj_px"]), float(c["confirm_radius_px"])
     key = cell_key(qxy, float(c["thin_px"]))
@@ -929,8 +928,7 @@ def confirm(H: np.ndarray, qxy: np.ndarray, qd: np.ndarray, A: np.ndarray, mxy: 
     q, m = qxy[at], mxy[near[at]]
     pe, fit = _disc_ratio(c), 0 if exclude is not None else 2
     hits = int((np.linalg.norm(apply_h(H0, q) - m, axis=1) <= e).sum())
-    lp = float(binom.logsf(hits - fit - 1, len(q) - fit, pe) / math.log(10)) if hits > fit else 0.0
-    out: dict[str, Any] = {"cells": len(q), "hits": hits, "log10_p": lp}
+    out: dict[str, Any] = {"cells": len(q), "hits": hits, "log10_p": _log10_tail(hits - fit, len(q) - fit, pe)}
     if exclude is None:
         out["split"] = _split_count(q, m, key[at], H0, c)
     return out
@@ -941,12 +939,10 @@ def _split_count(q: np.ndarray, m: np.ndarray, key: np.ndarray, H0: np.ndarray, 
     checkerboard halves of the query's cells: a rigid pose at ``H0``'s scale fit to one half's
     (``rigid_ransac``, then least squares; ``H0`` when it finds none), hits counted in the
     other half. Those cells did not make that pose: the binomial tail at the disc's chance rate
-    holds for a refit pose too. A pose a few px off (the rotation step's 3 deg; SRIF optical-optical 107, 6.9 px: 10
-    of 348 cells within reproj_px of it) is corrected by the refit (26 of 174). Returns the
-    better fold's ``cells``, ``hits``, ``log10_p`` (+ log10 2, the two folds) and ``pose``
+    holds for a refit pose too. A pose a few px off (the rotation step's 3 deg; SRIF
+    optical-optical 107, 6.9 px: 10 of 348 cells within reproj_px of it) is corrected by the
+    refit (26 of 174). Returns the better fold's ``cells``, ``hits``, ``log10_p`` (+ log10 2, the two folds) and ``pose``
     (canvas px -> map px: its refit pose refit again on every cell's guided match)."""
-    from scipy.stats import binom
-
     e, pe = float(c["reproj_px"]), _disc_ratio(c)
     half = ((key // 1_000_003 + key % 1_000_003) % 2).astype(bool)
     out: dict[str, Any] = {"cells": 0, "hits": 0, "log10_p": 0.0}
@@ -956,7 +952,7 @@ def _split_count(q: np.ndarray, m: np.ndarray, key: np.ndarray, H0: np.ndarray, 
         G = rigid_ransac(qs[fit], m[fit], e, float(c["max_angle_deg"])) if fit.sum() >= 2 else None
         G = H0 if G is None else refit(G, qs[fit], m[fit], e) @ S
         hits, n = int((np.linalg.norm(apply_h(G, q[~fit]) - m[~fit], axis=1) <= e).sum()), int((~fit).sum())
-        lp = float(binom.logsf(hits - 1, n, pe) / math.log(10)) + math.log10(2) if hits else 0.0
+        lp = _log10_tail(hits, n, pe) + math.log10(2) if hits else 0.0
         if lp < out["log10_p"]:
             out = {"cells": n, "hits": hits, "log10_p": lp, "pose": refit(G @ np.linalg.inv(S), qs, m, e) @ S}
     return out
@@ -1024,6 +1020,13 @@ def _null_log_nfa(per_rot: list[tuple[float, float]], angle: float | None, far_d
     if angle is None:
         return math.inf
     return min((v for a, v in per_rot if _angle_gap(a, angle) >= far_deg), default=math.inf)
+
+
+def _log10_tail(k: int, n: int, p: float) -> float:
+    """log10 P(X >= k), X ~ Binomial(n, p); 0 for k <= 0."""
+    from scipy.stats import binom
+
+    return float(binom.logsf(k - 1, n, p) / math.log(10)) if k > 0 else 0.0
 
 
 def _disc_ratio(c: dict[str, Any]) -> float:
