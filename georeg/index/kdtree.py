@@ -11,7 +11,7 @@ import numpy as np
 
 #: leaves a kd-tree search visits: 512 returns more of the true neighbours than 128 at the same
 #: CPU s a query; on SRIF wide optical-optical its effect is within the RANSAC seed's noise
-#: (docs/BENCHMARKS.md "Session 19")
+#: (docs/experiments/benchmark-history.md "Session 19")
 KDTREE_CHECKS = 512
 
 

@@ -209,7 +209,7 @@ def fuse(
         # part), if it is a plausible mapping of the whole query too: a part's homography may
         # hold on its own rows only (SRIF oo 77 in a 120-reference mosaic: a 14-inlier part whose
         # scale changes 1.8x across the whole query, 18.6 px off; no true accept of the records
-        # was implausible so: docs/BENCHMARKS.md "Session 20")
+        # was implausible so: docs/experiments/benchmark-history.md "Session 20")
         # judged on the ground: a pose found on pixels of another aspect (``MapView.aspect``)
         # maps the query's square pixels to map units that are not square on the ground
         a = float(best.get("aspect") or 1.0)
