@@ -48,6 +48,7 @@ ROOT = Path(__file__).resolve().parents[1]
 OSCD = ROOT.parent / "shared" / "data" / "swir_dates" / "oscd_dev"
 TUNING = ("abudhabi", "saclay_e", "saclay_w")
 SUCCESS_PX = 5.0
+MIN_CROP_PX = 96  # ``--crop``: a query side at least this many px (1.9 km at 20 m)
 
 
 def utm_of(lon: float, lat: float) -> str:
@@ -64,9 +65,11 @@ def _band(city: str, date: int, band: str) -> tuple[np.ndarray, dict[str, Any]]:
             return s.read(1), s.profile
 
 
-def make_case(city: str, reverse: bool, theta: float, out: Path) -> dict[str, Any]:
+def make_case(city: str, reverse: bool, theta: float, out: Path,
+              crop: tuple[int, int, int, int] | None = None) -> dict[str, Any]:
     """Write the user's inputs of one city direction under ``out``: ``map.tif`` (EPSG:4326 RGB),
-    ``query.tif`` (B11 + B12 rotated by ``theta`` deg), ``b11.tif`` and ``b12.tif`` (each band
+    ``query.tif`` (B11 + B12, only the window ``crop`` = (row, col, height, width) of them when
+    given, rotated by ``theta`` deg), ``b11.tif`` and ``b12.tif`` (each band
     alone, without its wavelength), ``truth.tif`` (2 bands: map x, y of each query pixel centre
     in the map CRS); returns the ``map`` entry and the ``query`` (both bands), ``b11`` and ``b12``
     query entries."""
@@ -87,6 +90,9 @@ def make_case(city: str, reverse: bool, theta: float, out: Path) -> dict[str, An
         for i, w in enumerate((665, 560, 490), 1):
             ds.set_band_description(i, f"{w} nm")
     (b11, p11), (b12, _) = _band(city, qd, "B11"), _band(city, qd, "B12")
+    r0, c0 = (crop[0], crop[1]) if crop else (0, 0)
+    if crop:
+        b11, b12 = (b[r0 : r0 + crop[2], c0 : c0 + crop[3]] for b in (b11, b12))
     cw, ch, M = rotation_canvas(b11.shape[1], b11.shape[0], theta)  # query px -> source px
     A, off = M[:, :2], M[:, 2]
 
@@ -104,7 +110,7 @@ def make_case(city: str, reverse: bool, theta: float, out: Path) -> dict[str, An
                            dtype="uint16", nodata=0) as ds:  # fmt: skip
             ds.write(warp(band).astype(np.uint16)[None])
     uu, vv = np.meshgrid(np.arange(cw, dtype=float), np.arange(ch, dtype=float))
-    sx, sy = A[0, 0] * uu + A[0, 1] * vv + off[0], A[1, 0] * uu + A[1, 1] * vv + off[1]
+    sx, sy = A[0, 0] * uu + A[0, 1] * vv + off[0] + c0, A[1, 0] * uu + A[1, 1] * vv + off[1] + r0
     T = p11["transform"]
     lo, la = T.c + (sx + 0.5) * T.a + (sy + 0.5) * T.b, T.f + (sx + 0.5) * T.d + (sy + 0.5) * T.e
     X, Y = Transformer.from_crs("EPSG:4326", crs, always_xy=True).transform(lo, la)
@@ -196,6 +202,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cities", default="", help="comma-separated subset (default: all five)")
     ap.add_argument("--others", choices=("half", "all"), default="half",
                     help="negatives per map: one other city's query of its half, or every other city's")
+    ap.add_argument("--crop", type=float, default=0.0,
+                    help="a part of the city: each query cut to this fraction of each side (at least "
+                         "MIN_CROP_PX), at a random place (0: the whole scene)")
     a = ap.parse_args(argv)
     if not OSCD.is_dir():
         print(f"no development data at {OSCD}", file=sys.stderr)
@@ -206,9 +215,14 @@ def main(argv: list[str] | None = None) -> int:
     work = Path(a.work)
     rows = []
     made = {}
-    for city, rev, theta in cases:
+    for city, rev, theta in cases:  # the crops drawn after the rotations: a seed's rotations kept
         name = f"{city}{'_rev' if rev else ''}"
-        made[name] = make_case(city, rev, theta, work / "inputs" / name)
+        crop = None
+        if a.crop > 0:
+            H, W = _band(city, 2 if rev else 1, "B11")[0].shape
+            h, w = (min(n, max(MIN_CROP_PX, round(n * a.crop))) for n in (H, W))
+            crop = (int(rng.integers(0, H - h + 1)), int(rng.integers(0, W - w + 1)), h, w)
+        made[name] = make_case(city, rev, theta, work / "inputs" / name, crop)
     names = list(made)
     for k, name in enumerate(names):
         city = name.removesuffix("_rev")
