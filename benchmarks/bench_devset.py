@@ -504,6 +504,8 @@ METHODS: dict[str, dict[str, Any]] = {
                      "bands": 1},  # the map windows' density before session 35
     # the workflow with the rift source enabled (fuse.SOURCES: runs when nothing else accepted)
     "wf_rift": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": False}}, "bands": 1},
+    "wf_rift_reangle": {"pipeline": {"rift": {"enabled": True, "reangle": True}, "learned": {"enabled": False}},
+                        "bands": 1},  # session 38: rift's accepted poses sharpened at their own angle
     "wf_rift_novote": {"pipeline": {"rift": {"enabled": True, "vote_regions": 0}, "learned": {"enabled": False}},
                        "bands": 1},  # without the vote regions (session 34)
     "wf_rift_nogsd_novote": {"pipeline": {"rift": {"enabled": True, "vote_regions": 0},
@@ -628,6 +630,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", default="",
                     help="only the queries whose names start with one of these (comma-separated, "
                     "e.g. wide_oi_,wide_od_: a pooled mosaic's oi and od queries); the maps stay whole")
+    ap.add_argument("--exact", action="store_true", help="--only names whole query names, not prefixes")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "out" / "devset.json"))
     ap.add_argument("-v", action="store_true")
     ap.add_argument("--per-half", type=int, default=0,
@@ -684,7 +687,8 @@ def main(argv: list[str] | None = None) -> int:
     if a.half != "both":
         queries = [q for q in queries if q.half == a.half]  # type: ignore[attr-defined]
     if a.only:
-        queries = [q for q in queries if q.name.startswith(tuple(a.only.split(",")))]
+        only = tuple(a.only.split(","))
+        queries = [q for q in queries if (q.name in only if a.exact else q.name.startswith(only))]
     if a.limit:
         keep: dict[str, int] = {}
         sel = []
