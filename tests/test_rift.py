@@ -694,3 +694,24 @@ def test_pucallpa_refused_guess_leaves_the_other_guesses_to_run(shared_data):
     assert not first["accepted"] and "a guessed GSD" in first["reason"] and first["log10_nfa"] < -6, first
     assert res["accepted"] and len(guesses) > 1, guesses
     assert bd.judge(q, sc, res)["error_px"] <= 5.0
+
+
+def test_pooled_bands_are_searched_together():
+    """A query of two bands (the pooled bands): each rotation's features are both bands'
+    together, on one canvas. With a first band that shows another scene, the first band alone is
+    rejected and the pair finds the true pose: the second band's evidence is not lost."""
+    m = _scene(1)
+    q, truth = _query(m, (170.0, 150.0), 37.0, 160)
+    other, _ = _query(_scene(2), (170.0, 150.0), 37.0, 160)
+    c = rift.rift_conf({})
+    one = next(rift.rotated_features(other, 1.0, c))
+    both = next(rift.rotated_features(np.stack([other, q]), 1.0, c))
+    alone = next(rift.rotated_features(q, 1.0, c))
+    assert len(both[1]) == len(one[1]) + len(alone[1])
+    np.testing.assert_allclose(both[3], one[3])
+    assert not rift.register(other, m, 1.0, _acc(), {})["accepted"]
+    r = rift.register(np.stack([other, q]), m, 1.0, _acc(), {})
+    assert r["accepted"], r["decision"]
+    pts = np.array([[0, 0], [159, 0], [0, 159], [159, 159], [80, 80]], float)
+    err = np.linalg.norm(matching.apply_h(r["H"], pts) - matching.apply_h(truth, pts), axis=1)
+    assert err.max() < 2.0, err

@@ -626,12 +626,17 @@ def _rotated(u8: np.ndarray, f: float, angle: float) -> tuple[np.ndarray, np.nda
 
 def rotated_features(query_u8: np.ndarray, scale: float, conf: dict[str, Any]):
     """Yield (angle deg, keypoints, descriptors, 3 x 3 query px -> canvas px) for each of the
-    ``rotations`` of the query scaled by ``scale``. The phase maps are computed only for the
+    ``rotations`` of the query scaled by ``scale``; a query of several bands (bands, rows, cols:
+    the pooled bands) yields every band's keypoints and descriptors together. The phase maps are computed only for the
     rotations below one orientation step (180 / norient deg): rotating the image by a step turns
     its maximum moment map with it and shifts the maximum index map by one orientation, so the
     other rotations are those maps warped (moment: linear, MIM and mask: nearest) with the index
     shifted (0.86 of the MIM equal to a recomputed one at 30 deg on SRIF oi 101)."""
     c = rift_conf(conf)
+    if query_u8.ndim == 3:  # pooled bands: one canvas, their features side by side
+        for each in zip(*(rotated_features(b, scale, c) for b in query_u8), strict=True):
+            yield each[0][0], np.concatenate([e[1] for e in each]), np.concatenate([e[2] for e in each]), each[0][3]
+        return
     n_rot, no = int(c["rotations"]), int(c["norient"])
     step = 180.0 / no
     turns = 360.0 / step
@@ -676,7 +681,8 @@ def register(
     n_vote: int | None = None,
     centroids_path: Path | None = None,
 ) -> dict[str, Any]:
-    """The query (uint8, 0 = nodata) against the map (uint8, 0 = nodata): ``scale`` = map px per
+    """The query (uint8, 0 = nodata; bands x rows x cols: pooled bands, searched together)
+    against the map (uint8, 0 = nodata): ``scale`` = map px per
     query px (the known GSD ratio); ``map_feats`` / ``area``: the map's features and valid pixels
     when ``map_u8`` is None. Every rotation's matches (``candidates`` per query keypoint), thinned
     per query cell -> rigid fit (``rigid_ransac``) -> ``acceptance.decide`` below ``log_nfa_max``
@@ -714,7 +720,7 @@ def register(
     models = fits(max_scale)
     n_vote = n_votes(area, c) if n_vote is None else int(n_vote)
     n_tests = n_rot * len(models) * (1 + n_vote) + int(tests_before)
-    h, w = query_u8.shape
+    h, w = query_u8.shape[-2:]
     to_m = np.diag([map_gsd_m, -map_gsd_m, 1.0])  # map px -> north-up map units (handedness)
     best: dict[str, Any] = {"accepted": False, "H": None, "log10_nfa": math.inf, "inliers": 0,
                             "matches": 0, "tests": n_rot * len(models) * (1 + n_vote), "angle_deg": None,
@@ -806,7 +812,7 @@ def register(
                                 f"{c['confirm_log_p_max']:g}; refit on half the cells: "
                                 f"{conf_['split']['log10_p']:.1f})"}  # fmt: skip
     if best["accepted"] and c["reangle"]:
-        best["H"], best["reangle"] = reangle(best["H"], query_u8, scale, mxy, mm, kc, c, best.get("scale_free", False))
+        best["H"], best["reangle"] = reangle(best["H"], query_u8 if query_u8.ndim == 2 else query_u8[0], scale, mxy, mm, kc, c, best.get("scale_free", False))
     if guided:
         best["rescue"] = r = rescue(guided, n_tests, c)
         if not best["accepted"] and r["log10_nfa"] < float(c["rescue_log_nfa_max"]):
@@ -1376,8 +1382,8 @@ def working_gsd(gsd: float, view: Any, c: dict[str, Any]) -> float:
 
 def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
            key: str = "rift") -> tuple[list[dict[str, Any]], dict[str, Any]]:  # fmt: skip
-    """Source ``rift`` (``register.rift``; ``georeg.register.fuse.SOURCES``): the query's primary
-    band against the whole orthophoto (read by windows through ``view.read_window`` at the map's
+    """Source ``rift`` (``register.rift``; ``georeg.register.fuse.SOURCES``): the query's pooled
+    bands (their features together; the primary band alone verifies) against the whole orthophoto (read by windows through ``view.read_window`` at the map's
     feature GSD, or the query's when it is > ``max_upsample`` coarser: ``read_map_features``),
     ``register``; an accepted pose
     is refit to the orthophoto around its footprint (``polish``; rejected when a moved pose is
@@ -1416,7 +1422,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     if why:
         return parts, {"ran": False, "reason": why}
     t0 = time.perf_counter()
-    u8 = q.u8 if q.u8.ndim == 2 else q.u8[0]
+    u8 = q.u8 if q.u8.ndim == 2 else q.u8[0]  # the primary band: the polish and the structure check
     a = float(view.aspect)
     # the map's pixels square in map units, and, when the map may be square on the ground
     # instead (``MapView.aspect``), at that aspect too; each GSD guess when it is unknown: the
@@ -1431,7 +1437,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     passes = []
     for v, k in runs:
         other = sum(tests.values()) - tests[(v, k)]
-        got = _search(v, u8, view, b, c, conf, k, int(q.tests_before) + other, max_scale, n_vote[v])
+        got = _search(v, q.u8, view, b, c, conf, k, int(q.tests_before) + other, max_scale, n_vote[v])
         if got[2] is not None:
             got = (got[0], _verify(*got, u8, view, c, conf, guessed, q.seed), got[2])
             passes.append(got)
