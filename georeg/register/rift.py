@@ -627,8 +627,9 @@ def _rotated(u8: np.ndarray, f: float, angle: float) -> tuple[np.ndarray, np.nda
 def rotated_features(query_u8: np.ndarray, scale: float, conf: dict[str, Any]):
     """Yield (angle deg, keypoints, descriptors, 3 x 3 query px -> canvas px) for each of the
     ``rotations`` of the query scaled by ``scale``; a query of several bands (bands, rows, cols:
-    the pooled bands) yields every band's keypoints and descriptors together. The phase maps are computed only for the
-    rotations below one orientation step (180 / norient deg): rotating the image by a step turns
+    the pooled bands) yields every band's keypoints and descriptors together. The phase maps are
+    computed only for the rotations below one orientation step (180 / norient deg): rotating the
+    image by a step turns
     its maximum moment map with it and shifts the maximum index map by one orientation, so the
     other rotations are those maps warped (moment: linear, MIM and mask: nearest) with the index
     shifted (0.86 of the MIM equal to a recomputed one at 30 deg on SRIF oi 101)."""
@@ -812,7 +813,8 @@ def register(
                                 f"{c['confirm_log_p_max']:g}; refit on half the cells: "
                                 f"{conf_['split']['log10_p']:.1f})"}  # fmt: skip
     if best["accepted"] and c["reangle"]:
-        best["H"], best["reangle"] = reangle(best["H"], query_u8 if query_u8.ndim == 2 else query_u8[0], scale, mxy, mm, kc, c, best.get("scale_free", False))
+        primary = query_u8 if query_u8.ndim == 2 else query_u8[0]
+        best["H"], best["reangle"] = reangle(best["H"], primary, scale, mxy, mm, kc, c, best.get("scale_free", False))
     if guided:
         best["rescue"] = r = rescue(guided, n_tests, c)
         if not best["accepted"] and r["log10_nfa"] < float(c["rescue_log_nfa_max"]):
@@ -1383,9 +1385,10 @@ def working_gsd(gsd: float, view: Any, c: dict[str, Any]) -> float:
 def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
            key: str = "rift") -> tuple[list[dict[str, Any]], dict[str, Any]]:  # fmt: skip
     """Source ``rift`` (``register.rift``; ``georeg.register.fuse.SOURCES``): the query's pooled
-    bands (their features together; the primary band alone verifies) against the whole orthophoto (read by windows through ``view.read_window`` at the map's
-    feature GSD, or the query's when it is > ``max_upsample`` coarser: ``read_map_features``),
-    ``register``; an accepted pose
+    bands (their features together; the primary band alone verifies) against the whole
+    orthophoto (read by windows through ``view.read_window`` at the map's feature GSD, or the
+    query's when it is > ``max_upsample`` coarser: ``read_map_features``), ``register``; an
+    accepted pose
     is refit to the orthophoto around its footprint (``polish``; rejected when a moved pose is
     better supported) and becomes one more (whole-query) part. A query without a GSD is searched
     at each of ``gsd_guesses`` (from ``q.factors``: ``unknown_gsd_factors``) with a similarity fit
