@@ -467,7 +467,7 @@ def check_fused(
         timings["ortho_check"] = time.perf_counter() - t1
     H = None if fused.get("homography") is None else np.array(fused["homography"])
     t1 = time.perf_counter()
-    lidar = lidar_check.run_check(q.u8[0] if q.u8.ndim == 3 else q.u8, H, dsm, conf)
+    lidar = lidar_check.run_check(q.primary, H, dsm, conf)
     if lidar is not None:
         timings["lidar_check"] = time.perf_counter() - t1
         fused = lidar_check.veto(fused, lidar)

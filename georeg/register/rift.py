@@ -629,10 +629,10 @@ def rotated_features(query_u8: np.ndarray, scale: float, conf: dict[str, Any]):
     ``rotations`` of the query scaled by ``scale``; a query of several bands (bands, rows, cols:
     the pooled bands) yields every band's keypoints and descriptors together. The phase maps are
     computed only for the rotations below one orientation step (180 / norient deg): rotating the
-    image by a step turns
-    its maximum moment map with it and shifts the maximum index map by one orientation, so the
-    other rotations are those maps warped (moment: linear, MIM and mask: nearest) with the index
-    shifted (0.86 of the MIM equal to a recomputed one at 30 deg on SRIF oi 101)."""
+    image by a step turns its maximum moment map with it and shifts the maximum index map by one
+    orientation, so the other rotations are those maps warped (moment: linear, MIM and mask:
+    nearest) with the index shifted (0.86 of the MIM equal to a recomputed one at 30 deg on SRIF
+    oi 101)."""
     c = rift_conf(conf)
     if query_u8.ndim == 3:  # pooled bands: one canvas, their features side by side
         for each in zip(*(rotated_features(b, scale, c) for b in query_u8), strict=True):
@@ -949,8 +949,9 @@ def _split_count(q: np.ndarray, m: np.ndarray, key: np.ndarray, H0: np.ndarray, 
     other half. Those cells did not make that pose: the binomial tail at the disc's chance rate
     holds for a refit pose too. A pose a few px off (the rotation step's 3 deg; SRIF
     optical-optical 107, 6.9 px: 10 of 348 cells within reproj_px of it) is corrected by the
-    refit (26 of 174). Returns the better fold's ``cells``, ``hits``, ``log10_p`` (+ log10 2, the two folds) and ``pose``
-    (canvas px -> map px: its refit pose refit again on every cell's guided match)."""
+    refit (26 of 174). Returns the better fold's ``cells``, ``hits``, ``log10_p`` (+ log10 2,
+    the two folds) and ``pose`` (canvas px -> map px: its refit pose refit again on every cell's
+    guided match)."""
     e, pe = float(c["reproj_px"]), _disc_ratio(c)
     half = ((key // 1_000_003 + key % 1_000_003) % 2).astype(bool)
     out: dict[str, Any] = {"cells": 0, "hits": 0, "log10_p": 0.0}
@@ -1388,8 +1389,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     bands (their features together; the primary band alone verifies) against the whole
     orthophoto (read by windows through ``view.read_window`` at the map's feature GSD, or the
     query's when it is > ``max_upsample`` coarser: ``read_map_features``), ``register``; an
-    accepted pose
-    is refit to the orthophoto around its footprint (``polish``; rejected when a moved pose is
+    accepted pose is refit to the orthophoto around its footprint (``polish``; rejected when a moved pose is
     better supported) and becomes one more (whole-query) part. A query without a GSD is searched
     at each of ``gsd_guesses`` (from ``q.factors``: ``unknown_gsd_factors``) with a similarity fit
     (``GUESS_SCALE``), until a strong pose that ``_verify`` keeps; a pose found at a guess needs
@@ -1425,7 +1425,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     if why:
         return parts, {"ran": False, "reason": why}
     t0 = time.perf_counter()
-    u8 = q.u8 if q.u8.ndim == 2 else q.u8[0]  # the primary band: the polish and the structure check
+    u8 = q.primary  # the polish and the structure check
     a = float(view.aspect)
     # the map's pixels square in map units, and, when the map may be square on the ground
     # instead (``MapView.aspect``), at that aspect too; each GSD guess when it is unknown: the

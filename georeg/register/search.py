@@ -259,6 +259,11 @@ class QueryInput:
     seed: int = 0
     tests_before: int = 0
 
+    @property
+    def primary(self) -> np.ndarray:
+        """The primary band (rows x cols)."""
+        return self.u8 if self.u8.ndim == 2 else self.u8[0]
+
 
 @dataclass
 class MapView:
