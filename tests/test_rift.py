@@ -381,9 +381,9 @@ def test_pucallpa_near_miss_polished_on_the_orthophoto(shared_data):
     tie points (``rift.polish``) brings it within the benchmark's 5 px."""
     if not (shared_data / "swir_dates" / "landsat_pucallpa" / "2010.tif").exists():
         pytest.skip("Landsat Pucallpa absent")
+    q, sc = _pucallpa("puc_2005_on_2010_1_1.6um")  # puts benchmarks/ on the path
     import bench_devset as bd
 
-    q, sc = _pucallpa("puc_2005_on_2010_1_1.6um")
     u8 = next(iter(q.bands.values()))
     r = rift.register(u8, sc.map_gray, q.gsd / sc.map_gsd, _acc(), {})
     assert r["accepted"], r["decision"]
@@ -396,8 +396,37 @@ def test_pucallpa_near_miss_polished_on_the_orthophoto(shared_data):
     H = np.diag([g, -g, 1.0]) @ r["H"]
     assert err(H) > 5.0  # the near miss this test is about
     H2, rec = rift.polish(u8, H, bd.bx.plain_window_reader(sc), {"acceptance": _acc()})
-    assert not rec["moved_better"] and rec["refit_kept"]
+    assert not rec["moved_better"] and rec["refit_kept"] and "turn" not in rec
     assert err(H2) < 4.0, err(H2)
+    # turned too: the whole footprint's correlation takes the rotation the cells left (3.0 -> 1.9)
+    H3, rec3 = rift.polish(u8, H, bd.bx.plain_window_reader(sc), {"acceptance": _acc()}, 8.0)
+    assert rec3["turn"]["deg"] != 0 and err(H3) < err(H2) - 0.5, (err(H3), err(H2), rec3)
+
+
+def test_turned_pose_is_brought_back_by_the_footprint_correlation():
+    """A pose turned 5 deg about the query's centre and moved 2 px (a rift pose fit to a few
+    cells) comes back within a map px of the truth (``rift.turned``: 1 deg steps, sub-px
+    offset); the true pose stays where it is."""
+    from georeg.register import ortho_check
+
+    m = _scene(5, 480)
+    q, truth = _query(m, (240.0, 230.0), 37.0, 160)
+    to_map = np.array([[2.0, 0, 1], [0, -2, -1], [0, 0, 1]])  # map px (centres) -> x, y (_box_reader's)
+    c = np.array([[1, 0, 79.5], [0, 1, 79.5], [0, 0, 1.0]])
+    R = cv2.getRotationMatrix2D((0.0, 0.0), 5.0, 1.0)
+    off = truth @ c @ np.vstack([R, [0, 0, 1.0]]) @ np.linalg.inv(c) + np.array([[0, 0, 2.0], [0, 0, -1.5], [0, 0, 0]])
+    corners = np.array([[0, 0], [159, 0], [159, 159], [0, 159]], float)
+
+    def err(H: np.ndarray) -> float:  # map px at the query's corners
+        return float(np.abs(matching.apply_h(np.linalg.inv(to_map) @ H, corners) - matching.apply_h(truth, corners)).max())
+
+    oc = {**ortho_check.DEFAULTS, "mode": "record"}
+    img = ortho_check.window_image(_box_reader(m, 2.0), to_map @ off, q.shape, oc)
+    assert err(to_map @ off) > 6.0
+    back, rec = rift.turned(q, to_map @ off, img, 8.0)
+    assert err(back) < 1.0 and abs(rec["deg"] + 5.0) <= 1.0, (err(back), rec)
+    same, rec = rift.turned(q, to_map @ truth, img, 8.0)
+    assert err(same) < 0.3 and rec["deg"] == 0.0, (err(same), rec)
 
 
 def test_a_query_of_few_cells_decides_nothing():

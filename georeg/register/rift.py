@@ -81,6 +81,8 @@ DEFAULTS: dict[str, Any] = {
     # null + 2 for its own noise (chance poses' NFAs moved by up to 2.1 decades between the
     # source alone and the workflow's windows, Pucallpa tuning half; true poses' by 0.3)
     "polish": True,  # an accepted pose refit densely to the orthophoto (``polish``)
+    "polish_turn_deg": 8.0,  # ... and turned: the whole footprint's CFOG correlation over
+    # rotations this far each side (1 deg steps) and offsets within POLISH_BOX_PX; 0 = off
     "structure_z_min": 2.2,  # an accepted pose's structure agreement with the orthophoto, z
     # against random poses nearby (``structure_check``), must reach this; 0 = off
     "reangle": False,  # an accepted pose's features computed again at its own rotation (``reangle``)
@@ -96,6 +98,8 @@ DEFAULTS: dict[str, Any] = {
 #: rotations this far from the best one are not its pose (the rigid fit takes +-max_angle_deg
 #: around each 10 deg step, so the two neighbouring steps can find the same pose)
 NULL_FAR_DEG = 25.0
+#: ``polish_turn_deg``: the query centre searched within this many map px of the polished pose's
+POLISH_BOX_PX = 6.0
 
 log = logging.getLogger(__name__)
 
@@ -1048,8 +1052,8 @@ def _angle_gap(a: float, b: float) -> float:
     return abs((a - b + 180.0) % 360.0 - 180.0)
 
 
-def polish(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, Any] | None
-           ) -> tuple[np.ndarray, dict[str, Any] | None]:  # fmt: skip
+def polish(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, Any] | None,
+           turn_deg: float = 0.0) -> tuple[np.ndarray, dict[str, Any] | None]:  # fmt: skip
     """An accepted pose (query px -> map x, y) refit densely: it rests on a few 36 px cells (7-8
     on small cross-date crops, 4-5 deg off on Landsat Pucallpa), so the orthophoto's CFOG tie
     points over the whole footprint refit it (``ortho_check.verify``: the affine refit, taken
@@ -1070,7 +1074,50 @@ def polish(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, 
     out = {"outcome": rec["outcome"], "gain": gain, "tie_points": rec.get("tie_points"),
            "refit_kept": bool((rec.get("refit") or {}).get("kept", False)),
            "moved_better": gain is not None and gain < 1.0}  # fmt: skip
-    return (H if out["moved_better"] else use), out
+    if out["moved_better"]:
+        return H, out
+    if turn_deg > 0:
+        use, out["turn"] = turned(u8, use, img, turn_deg)
+    return use, out
+
+
+def turned(u8: np.ndarray, H: np.ndarray, img: Any, turn_deg: float, max_side: int = 400
+           ) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
+    """A pose (query px -> map x, y) moved to the peak of the whole footprint's CFOG correlation
+    with the orthophoto window ``img`` (``tiepoints.MapImage``) among similarities at its scale:
+    rotations within ``turn_deg`` of its own (1 deg steps), the query centre within
+    ``POLISH_BOX_PX`` map px (``null_scan.fine_pose``), at most ``max_side`` px across. A rift pose
+    is fit to a few 36 px cells at a 10 deg step, so it is often a few degrees off; the tie-point
+    refit of ``polish`` follows the changed land of a cross-date pair, one correlation over the
+    whole footprint does not (Landsat Pucallpa, session 39). Returns the pose and a record
+    (``deg``: the turn, ``moved_px``: the centre's move in map px, ``score``)."""
+    from georeg.register.dense import window_u8
+    from georeg.register.null_scan import fine_pose
+
+    h, w = u8.shape[-2:]
+    T = np.array(tuple(img.transform)[:6] + (0.0, 0.0, 1.0), float).reshape(3, 3)
+    P = np.linalg.inv(T @ np.array([[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1.0]]))  # map -> window px (centres)
+    S = P @ H
+    factor = math.sqrt(abs(np.linalg.det(S[:2, :2])))
+    k = min(1.0, max_side / (max(h, w) * factor))  # the window shrunk so the query is <= max_side
+    K = np.diag([k, k, 1.0]) @ np.array([[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1.0]])
+    gray = img.gray
+    if k < 1.0:  # fx = fy = k: OpenCV samples at exactly that scale
+        gray = cv2.resize(np.nan_to_num(gray, nan=0.0), None, fx=k, fy=k, interpolation=cv2.INTER_AREA)
+        ok = cv2.resize(np.isfinite(img.gray).astype(np.float32), None, fx=k, fy=k,
+                        interpolation=cv2.INTER_AREA) > 0.99  # fmt: skip
+        gray = np.where(ok, gray, np.nan)
+    Ks = np.array([[1, 0, -0.5], [0, 1, -0.5], [0, 0, 1.0]]) @ K  # window px -> shrunk px (centres)
+    Ss = Ks @ S
+    angle = math.degrees(math.atan2(-Ss[1, 0], Ss[0, 0]))
+    S2, a2, score = fine_pose(u8, factor * k, window_u8(gray), Ss, angle, 1.0, float(turn_deg),
+                              max(1.0, POLISH_BOX_PX * k))  # fmt: skip
+    if not math.isfinite(score):
+        return H, {"deg": 0.0, "moved_px": 0.0, "score": None}
+    H2 = np.linalg.inv(Ks @ P) @ S2
+    c = np.array([(w - 1) / 2, (h - 1) / 2, 1.0])
+    moved = float(np.linalg.norm((Ks @ P @ H2 @ c)[:2] - (Ks @ P @ H @ c)[:2]) / k)
+    return H2, {"deg": round(a2 - angle, 2), "moved_px": round(moved, 2), "score": round(score, 4)}
 
 
 def window_at(gray: np.ndarray, A: np.ndarray, g: float, aspect: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
@@ -1353,7 +1400,7 @@ def _verify(r: dict[str, Any], H: np.ndarray | None, rec: dict[str, Any], u8: np
     if not r["accepted"] or H is None:
         return H
     if c["polish"]:
-        H, rec["polish"] = polish(u8, H, view.read_window, conf)
+        H, rec["polish"] = polish(u8, H, view.read_window, conf, float(c["polish_turn_deg"]))
         if rec["polish"] and rec["polish"]["moved_better"]:
             r["accepted"] = rec["accepted"] = False
             rec["reason"] = "the orthophoto's tie points support a moved pose better (gain < 1)"
