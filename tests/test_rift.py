@@ -427,6 +427,10 @@ def test_turned_pose_is_brought_back_by_the_footprint_correlation():
     assert err(back) < 1.0 and abs(rec["deg"] + 5.0) <= 1.0, (err(back), rec)
     same, rec = rift.turned(q, to_map @ truth, img, 8.0)
     assert err(same) < 0.3 and rec["deg"] == 0.0, (err(same), rec)
+    # a pose found at a ground aspect (not square on the map's grid) is left as it is
+    squeezed = to_map @ off @ np.diag([1.0, 0.8, 1.0])
+    kept, rec = rift.turned(q, to_map @ off, img, 8.0, found=squeezed)
+    assert np.array_equal(kept, to_map @ off) and rec["reason"], rec
 
 
 def test_a_query_of_few_cells_decides_nothing():

@@ -100,6 +100,10 @@ DEFAULTS: dict[str, Any] = {
 NULL_FAR_DEG = 25.0
 #: ``polish_turn_deg``: the query centre searched within this many map px of the polished pose's
 POLISH_BOX_PX = 6.0
+#: ... and only a pose found as a similarity on the map's pixel grid (within this ratio of its
+#: axes): one found at a ground aspect (a lon/lat map's pixels are not square on the ground) is
+#: not turned, the turn would square it
+TURN_MAX_ANISOTROPY = 1.02
 
 log = logging.getLogger(__name__)
 
@@ -1077,20 +1081,24 @@ def polish(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, 
     if out["moved_better"]:
         return H, out
     if turn_deg > 0:
-        use, out["turn"] = turned(u8, use, img, turn_deg)
+        use, out["turn"] = turned(u8, use, img, turn_deg, found=H)
     return use, out
 
 
-def turned(u8: np.ndarray, H: np.ndarray, img: Any, turn_deg: float, max_side: int = 400
-           ) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
+def turned(u8: np.ndarray, H: np.ndarray, img: Any, turn_deg: float, found: np.ndarray | None = None,
+           max_side: int = 400) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
     """A pose (query px -> map x, y) moved to the peak of the whole footprint's CFOG correlation
     with the orthophoto window ``img`` (``tiepoints.MapImage``) among similarities at its scale:
     rotations within ``turn_deg`` of its own (1 deg steps), the query centre within
     ``POLISH_BOX_PX`` map px (``null_scan.fine_pose``), at most ``max_side`` px across. A rift pose
     is fit to a few 36 px cells at a 10 deg step, so it is often a few degrees off; the tie-point
     refit of ``polish`` follows the changed land of a cross-date pair, one correlation over the
-    whole footprint does not (Landsat Pucallpa, session 39). Returns the pose and a record
-    (``deg``: the turn, ``moved_px``: the centre's move in map px, ``score``)."""
+    whole footprint does not (Landsat Pucallpa, session 39). A pose ``found`` (before the polish:
+    ``H`` when None) more anisotropic than ``TURN_MAX_ANISOTROPY`` on the window's grid (a search
+    at a ground aspect, ``MapView.aspect``) is left as it is; else the turned pose is the
+    similarity the correlation peaks at (the polish's affine refit, up to 13 % anisotropic on a
+    square grid, is noise there). Returns the pose and a record
+    (``deg``: the turn, ``moved_px``: the centre's move in orthophoto px, ``score``)."""
     from georeg.register.dense import window_u8
     from georeg.register.null_scan import fine_pose
 
@@ -1098,6 +1106,9 @@ def turned(u8: np.ndarray, H: np.ndarray, img: Any, turn_deg: float, max_side: i
     T = np.array(tuple(img.transform)[:6] + (0.0, 0.0, 1.0), float).reshape(3, 3)
     P = np.linalg.inv(T @ np.array([[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1.0]]))  # map -> window px (centres)
     S = P @ H
+    sv = np.linalg.svd((P @ (H if found is None else found))[:2, :2], compute_uv=False)
+    if sv[0] > TURN_MAX_ANISOTROPY * sv[1]:  # found on a map whose pixels are not square on the ground
+        return H, {"deg": 0.0, "moved_px": 0.0, "score": None, "reason": "not a similarity on the map grid"}
     factor = math.sqrt(abs(np.linalg.det(S[:2, :2])))
     k = min(1.0, max_side / (max(h, w) * factor))  # the window shrunk so the query is <= max_side
     K = np.diag([k, k, 1.0]) @ np.array([[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1.0]])
