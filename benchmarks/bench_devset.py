@@ -506,8 +506,10 @@ METHODS: dict[str, dict[str, Any]] = {
     "wf_rift": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": False}}, "bands": 1},
     "wf_rift_reangle": {"pipeline": {"rift": {"enabled": True, "reangle": True}, "learned": {"enabled": False}},
                         "bands": 1},  # session 38: rift's accepted poses sharpened at their own angle
-    "wf_rift_noturn": {"pipeline": {"rift": {"enabled": True, "polish_turn_deg": 0}, "learned": {"enabled": False}},
-                       "bands": 1},  # before session 39: the polish without the turn (``rift.turned``)
+    "wf_rift_noturn": {"pipeline": {"rift": {"enabled": True, "turn_deg": 0}, "learned": {"enabled": False}},
+                       "bands": 1},  # before session 39: accepted poses not turned (``rift.turned``)
+    "wf_rift_refined_noturn": {"pipeline": {"rift": {"enabled": True, "turn_deg": 0}}, "bands": 1,
+                               "refine": {}},  # the same, then the refinement stage  # fmt: skip
     "wf_rift_novote": {"pipeline": {"rift": {"enabled": True, "vote_regions": 0}, "learned": {"enabled": False}},
                        "bands": 1},  # without the vote regions (session 34)
     "wf_rift_nogsd_novote": {"pipeline": {"rift": {"enabled": True, "vote_regions": 0},
@@ -553,13 +555,15 @@ def run_rift(q: bx.Query, sc: bx.Scene, spec: dict[str, Any], seed: int) -> dict
     H = None if r["H"] is None else np.diag([g, -g, 1.0]) @ r["H"]  # judged only if accepted
     pol = None
     if r["accepted"] and conf["polish"]:  # as rift.source does with the orthophoto's window
-        H, pol = rift.polish(u8, H, bx.plain_window_reader(sc), reg, float(conf["polish_turn_deg"]))
+        H, pol = rift.polish(u8, H, bx.plain_window_reader(sc), reg)
         r["accepted"] = not (pol and pol["moved_better"])
     st = None
     if r["accepted"] and float(conf["structure_z_min"]) > 0:  # as rift.source does
         st = rift.structure_check(u8, H, bx.plain_window_reader(sc), q.gsd, conf, seed,
                                   z_enough=2 * float(conf["structure_z_min"]))  # fmt: skip
         r["accepted"] = st is None or st["z"] >= float(conf["structure_z_min"])
+    if r["accepted"] and float(conf["turn_deg"]) > 0:  # as rift.source does
+        H, _ = rift.turned(u8, H, bx.plain_window_reader(sc), reg, float(conf["turn_deg"]))
     return {"matches": r["matches"], "inliers": r["inliers"], "accepted": r["accepted"], "H": H,
             "log10_nfa": r["log10_nfa"], "tests": r["tests"], "candidates": r["tests"],
             "angle_deg": r["angle_deg"], "map_cpu_seconds": map_s,

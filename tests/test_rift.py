@@ -395,19 +395,19 @@ def test_pucallpa_near_miss_polished_on_the_orthophoto(shared_data):
 
     H = np.diag([g, -g, 1.0]) @ r["H"]
     assert err(H) > 5.0  # the near miss this test is about
-    H2, rec = rift.polish(u8, H, bd.bx.plain_window_reader(sc), {"acceptance": _acc()})
-    assert not rec["moved_better"] and rec["refit_kept"] and "turn" not in rec
+    read = bd.bx.plain_window_reader(sc)
+    H2, rec = rift.polish(u8, H, read, {"acceptance": _acc()})
+    assert not rec["moved_better"] and rec["refit_kept"]
     assert err(H2) < 4.0, err(H2)
-    # turned too: the whole footprint's correlation takes the rotation the cells left (3.0 -> 1.9)
-    H3, rec3 = rift.polish(u8, H, bd.bx.plain_window_reader(sc), {"acceptance": _acc()}, 8.0)
-    assert rec3["turn"]["deg"] != 0 and err(H3) < err(H2) - 0.5, (err(H3), err(H2), rec3)
+    # then turned: the whole footprint's correlation takes the rotation the cells left (3.0 -> 1.9)
+    H3, turn = rift.turned(u8, H2, read, {"acceptance": _acc()}, 8.0, found=H)
+    assert turn["deg"] != 0 and err(H3) < err(H2) - 0.5, (err(H3), err(H2), turn)
 
 
 def test_turned_pose_is_brought_back_by_the_footprint_correlation():
     """A pose turned 5 deg about the query's centre and moved 2 px (a rift pose fit to a few
     cells) comes back within a map px of the truth (``rift.turned``: 1 deg steps, sub-px
     offset); the true pose stays where it is."""
-    from georeg.register import ortho_check
 
     m = _scene(5, 480)
     q, truth = _query(m, (240.0, 230.0), 37.0, 160)
@@ -420,17 +420,18 @@ def test_turned_pose_is_brought_back_by_the_footprint_correlation():
     def err(H: np.ndarray) -> float:  # map px at the query's corners
         return float(np.abs(matching.apply_h(np.linalg.inv(to_map) @ H, corners) - matching.apply_h(truth, corners)).max())
 
-    oc = {**ortho_check.DEFAULTS, "mode": "record"}
-    img = ortho_check.window_image(_box_reader(m, 2.0), to_map @ off, q.shape, oc)
+    read = _box_reader(m, 2.0)
     assert err(to_map @ off) > 6.0
-    back, rec = rift.turned(q, to_map @ off, img, 8.0)
+    back, rec = rift.turned(q, to_map @ off, read, {}, 8.0)
     assert err(back) < 1.0 and abs(rec["deg"] + 5.0) <= 1.0, (err(back), rec)
-    same, rec = rift.turned(q, to_map @ truth, img, 8.0)
+    same, rec = rift.turned(q, to_map @ truth, read, {}, 8.0)
     assert err(same) < 0.3 and rec["deg"] == 0.0, (err(same), rec)
     # a pose found at a ground aspect (not square on the map's grid) is left as it is
     squeezed = to_map @ off @ np.diag([1.0, 0.8, 1.0])
-    kept, rec = rift.turned(q, to_map @ off, img, 8.0, found=squeezed)
+    kept, rec = rift.turned(q, to_map @ off, read, {}, 8.0, found=squeezed)
     assert np.array_equal(kept, to_map @ off) and rec["reason"], rec
+    # off the orthophoto: nothing to turn to
+    assert rift.turned(q, np.array([[2.0, 0, 1e6], [0, -2, -1e6], [0, 0, 1]]), read, {}, 8.0)[1] is None
 
 
 def test_a_query_of_few_cells_decides_nothing():

@@ -81,8 +81,9 @@ DEFAULTS: dict[str, Any] = {
     # null + 2 for its own noise (chance poses' NFAs moved by up to 2.1 decades between the
     # source alone and the workflow's windows, Pucallpa tuning half; true poses' by 0.3)
     "polish": True,  # an accepted pose refit densely to the orthophoto (``polish``)
-    "polish_turn_deg": 8.0,  # ... and turned: the whole footprint's CFOG correlation over
-    # rotations this far each side (1 deg steps) and offsets within POLISH_BOX_PX; 0 = off
+    "turn_deg": 8.0,  # an accepted pose turned to the peak of the whole footprint's CFOG
+    # correlation over rotations this far each side (1 deg steps) and offsets within TURN_BOX_PX
+    # (``turned``); 0 = off
     "structure_z_min": 2.2,  # an accepted pose's structure agreement with the orthophoto, z
     # against random poses nearby (``structure_check``), must reach this; 0 = off
     "reangle": False,  # an accepted pose's features computed again at its own rotation (``reangle``)
@@ -98,8 +99,8 @@ DEFAULTS: dict[str, Any] = {
 #: rotations this far from the best one are not its pose (the rigid fit takes +-max_angle_deg
 #: around each 10 deg step, so the two neighbouring steps can find the same pose)
 NULL_FAR_DEG = 25.0
-#: ``polish_turn_deg``: the query centre searched within this many map px of the polished pose's
-POLISH_BOX_PX = 6.0
+#: ``turn_deg``: the query centre searched within this many orthophoto px of the accepted pose's
+TURN_BOX_PX = 6.0
 #: ... and only a pose found as a similarity on the map's pixel grid (within this ratio of its
 #: axes): one found at a ground aspect (a lon/lat map's pixels are not square on the ground) is
 #: not turned, the turn would square it
@@ -1056,8 +1057,8 @@ def _angle_gap(a: float, b: float) -> float:
     return abs((a - b + 180.0) % 360.0 - 180.0)
 
 
-def polish(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, Any] | None,
-           turn_deg: float = 0.0) -> tuple[np.ndarray, dict[str, Any] | None]:  # fmt: skip
+def polish(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, Any] | None
+           ) -> tuple[np.ndarray, dict[str, Any] | None]:  # fmt: skip
     """An accepted pose (query px -> map x, y) refit densely: it rests on a few 36 px cells (7-8
     on small cross-date crops, 4-5 deg off on Landsat Pucallpa), so the orthophoto's CFOG tie
     points over the whole footprint refit it (``ortho_check.verify``: the affine refit, taken
@@ -1078,30 +1079,36 @@ def polish(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, 
     out = {"outcome": rec["outcome"], "gain": gain, "tie_points": rec.get("tie_points"),
            "refit_kept": bool((rec.get("refit") or {}).get("kept", False)),
            "moved_better": gain is not None and gain < 1.0}  # fmt: skip
-    if out["moved_better"]:
-        return H, out
-    if turn_deg > 0:
-        use, out["turn"] = turned(u8, use, img, turn_deg, found=H)
-    return use, out
+    return (H if out["moved_better"] else use), out
 
 
-def turned(u8: np.ndarray, H: np.ndarray, img: Any, turn_deg: float, found: np.ndarray | None = None,
-           max_side: int = 400) -> tuple[np.ndarray, dict[str, Any]]:  # fmt: skip
-    """A pose (query px -> map x, y) moved to the peak of the whole footprint's CFOG correlation
-    with the orthophoto window ``img`` (``tiepoints.MapImage``) among similarities at its scale:
-    rotations within ``turn_deg`` of its own (1 deg steps), the query centre within
-    ``POLISH_BOX_PX`` map px (``null_scan.fine_pose``), at most ``max_side`` px across. A rift pose
-    is fit to a few 36 px cells at a 10 deg step, so it is often a few degrees off; the tie-point
-    refit of ``polish`` follows the changed land of a cross-date pair, one correlation over the
-    whole footprint does not (Landsat Pucallpa, session 39). A pose ``found`` (before the polish:
-    ``H`` when None) more anisotropic than ``TURN_MAX_ANISOTROPY`` on the window's grid (a search
-    at a ground aspect, ``MapView.aspect``) is left as it is; else the turned pose is the
-    similarity the correlation peaks at (the polish's affine refit, up to 13 % anisotropic on a
-    square grid, is noise there). Returns the pose and a record
-    (``deg``: the turn, ``moved_px``: the centre's move in orthophoto px, ``score``)."""
+def turned(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, Any] | None,
+           turn_deg: float, found: np.ndarray | None = None, max_side: int = 400
+           ) -> tuple[np.ndarray, dict[str, Any] | None]:  # fmt: skip
+    """An accepted pose (query px -> map x, y) moved to the peak of the whole footprint's CFOG
+    correlation with the orthophoto (read around it through ``read_window``, as ``polish`` does)
+    among similarities at its scale: rotations within ``turn_deg`` of its own (1 deg steps), the
+    query centre within ``TURN_BOX_PX`` orthophoto px (``null_scan.fine_pose``), at most
+    ``max_side`` px across. A rift pose is fit to a few 36 px cells at a 10 deg step, so it is
+    often a few degrees off; the tie-point refit of ``polish`` follows the changed land of a
+    cross-date pair, one correlation over the whole footprint does not (Landsat Pucallpa,
+    session 39). The pose is turned once it is accepted: the correlation's peak is flat within a
+    degree or two, so on a weak pose it moves with noise, and the acceptance (the polish's gain,
+    the structure check) stays on the pose the search found. A pose ``found`` (the search's,
+    before the polish; ``H`` when None) more anisotropic than ``TURN_MAX_ANISOTROPY`` on the
+    window's grid (a search at a ground aspect, ``MapView.aspect``) is left as it is; else the
+    turned pose is the similarity the correlation peaks at (the polish's affine refit, up to
+    13 % anisotropic on a square grid, is noise there). Returns the pose and a record (None when
+    the footprint misses the orthophoto; ``deg``: the turn, ``moved_px``: the centre's move in
+    orthophoto px, ``score``)."""
+    from georeg.register import ortho_check
     from georeg.register.dense import window_u8
     from georeg.register.null_scan import fine_pose
 
+    H = np.asarray(H, float)
+    img = ortho_check.window_image(read_window, H, u8.shape, {**ortho_check.ortho_conf(reg_conf), "mode": "record"})
+    if img is None:
+        return H, None
     h, w = u8.shape[-2:]
     T = np.array(tuple(img.transform)[:6] + (0.0, 0.0, 1.0), float).reshape(3, 3)
     P = np.linalg.inv(T @ np.array([[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1.0]]))  # map -> window px (centres)
@@ -1122,7 +1129,7 @@ def turned(u8: np.ndarray, H: np.ndarray, img: Any, turn_deg: float, found: np.n
     Ss = Ks @ S
     angle = math.degrees(math.atan2(-Ss[1, 0], Ss[0, 0]))
     S2, a2, score = fine_pose(u8, factor * k, window_u8(gray), Ss, angle, 1.0, float(turn_deg),
-                              max(1.0, POLISH_BOX_PX * k))  # fmt: skip
+                              max(1.0, TURN_BOX_PX * k))  # fmt: skip
     if not math.isfinite(score):
         return H, {"deg": 0.0, "moved_px": 0.0, "score": None}
     H2 = np.linalg.inv(Ks @ P) @ S2
@@ -1407,30 +1414,33 @@ def _verify(r: dict[str, Any], H: np.ndarray | None, rec: dict[str, Any], u8: np
     orthophoto (``polish``; refused when a moved pose is better supported) and its structure
     agreement (``structure_check``; a weak pose needs ``STRUCTURE_WEAK`` x ``structure_z_min``,
     one at a guessed GSD ``STRUCTURE_GUESSED`` x). A refused pose leaves the other searches to
-    run. Returns the pose to use (the polished one)."""
+    run. An accepted pose is then turned (``turned``). Returns the pose to use."""
     if not r["accepted"] or H is None:
         return H
+    found = H
     if c["polish"]:
-        H, rec["polish"] = polish(u8, H, view.read_window, conf, float(c["polish_turn_deg"]))
+        H, rec["polish"] = polish(u8, H, view.read_window, conf)
         if rec["polish"] and rec["polish"]["moved_better"]:
             r["accepted"] = rec["accepted"] = False
             rec["reason"] = "the orthophoto's tie points support a moved pose better (gain < 1)"
             return H
     zmin = float(c["structure_z_min"])
-    if zmin <= 0:
-        return H
-    # a weak pose (log10 NFA above the strip rule's line) needs more of the structure
-    weak = r["log10_nfa"] > float(c["log_nfa_max"]) - float(c["null_margin"])
-    at_guess = STRUCTURE_GUESSED if guessed else 1.0
-    need = zmin * max(STRUCTURE_WEAK if weak else 1.0, at_guess)
-    rec["structure"] = st = structure_check(u8, H, view.read_window, rec["gsd"], c, seed,
-                                            z_enough=2 * zmin * at_guess)  # fmt: skip
-    if st is not None and st["z"] < need:
-        r["accepted"] = rec["accepted"] = False
-        why = [w for w, on in (("a weak pose", weak), ("a guessed GSD", guessed)) if on]
-        rec["reason"] = (f"the orthophoto's structure agrees with the query's at the pose no "
-                         f"better than at random poses nearby (z {st['z']:.1f} < {need:g}"
-                         f"{''.join(', ' + w for w in why)}): a look-alike")  # fmt: skip
+    if zmin > 0:
+        # a weak pose (log10 NFA above the strip rule's line) needs more of the structure
+        weak = r["log10_nfa"] > float(c["log_nfa_max"]) - float(c["null_margin"])
+        at_guess = STRUCTURE_GUESSED if guessed else 1.0
+        need = zmin * max(STRUCTURE_WEAK if weak else 1.0, at_guess)
+        rec["structure"] = st = structure_check(u8, H, view.read_window, rec["gsd"], c, seed,
+                                                z_enough=2 * zmin * at_guess)  # fmt: skip
+        if st is not None and st["z"] < need:
+            r["accepted"] = rec["accepted"] = False
+            why = [w for w, on in (("a weak pose", weak), ("a guessed GSD", guessed)) if on]
+            rec["reason"] = (f"the orthophoto's structure agrees with the query's at the pose no "
+                             f"better than at random poses nearby (z {st['z']:.1f} < {need:g}"
+                             f"{''.join(', ' + w for w in why)}): a look-alike")  # fmt: skip
+            return H
+    if float(c["turn_deg"]) > 0:
+        H, rec["turn"] = turned(u8, H, view.read_window, conf, float(c["turn_deg"]), found=found)
     return H
 
 
