@@ -378,7 +378,8 @@ def test_pucallpa_blanked_strip_stays_refused(shared_data):
 def test_pucallpa_near_miss_polished_on_the_orthophoto(shared_data):
     """Landsat Pucallpa (bench_devset, tuning half): the 2005 SWIR crop on the 2010 map is
     accepted on 8 cells 6.2 px off (its rotation 5 deg off); the dense refit to the map's CFOG
-    tie points (``rift.polish``) brings it within the benchmark's 5 px."""
+    tie points (``rift.polish``) brings it within the benchmark's 5 px, the turn to the
+    footprint's correlation peak (``rift.turned``) half a px closer again."""
     if not (shared_data / "swir_dates" / "landsat_pucallpa" / "2010.tif").exists():
         pytest.skip("Landsat Pucallpa absent")
     q, sc = _pucallpa("puc_2005_on_2010_1_1.6um")  # puts benchmarks/ on the path
@@ -408,7 +409,6 @@ def test_turned_pose_is_brought_back_by_the_footprint_correlation():
     """A pose turned 5 deg about the query's centre and moved 2 px (a rift pose fit to a few
     cells) comes back within a map px of the truth (``rift.turned``: 1 deg steps, sub-px
     offset); the true pose stays where it is."""
-
     m = _scene(5, 480)
     q, truth = _query(m, (240.0, 230.0), 37.0, 160)
     to_map = np.array([[2.0, 0, 1], [0, -2, -1], [0, 0, 1]])  # map px (centres) -> x, y (_box_reader's)

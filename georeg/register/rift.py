@@ -1118,14 +1118,13 @@ def turned(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, 
         return H, {"deg": 0.0, "moved_px": 0.0, "score": None, "reason": "not a similarity on the map grid"}
     factor = math.sqrt(abs(np.linalg.det(S[:2, :2])))
     k = min(1.0, max_side / (max(h, w) * factor))  # the window shrunk so the query is <= max_side
-    K = np.diag([k, k, 1.0]) @ np.array([[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1.0]])
     gray = img.gray
     if k < 1.0:  # fx = fy = k: OpenCV samples at exactly that scale
         gray = cv2.resize(np.nan_to_num(gray, nan=0.0), None, fx=k, fy=k, interpolation=cv2.INTER_AREA)
         ok = cv2.resize(np.isfinite(img.gray).astype(np.float32), None, fx=k, fy=k,
                         interpolation=cv2.INTER_AREA) > 0.99  # fmt: skip
         gray = np.where(ok, gray, np.nan)
-    Ks = np.array([[1, 0, -0.5], [0, 1, -0.5], [0, 0, 1.0]]) @ K  # window px -> shrunk px (centres)
+    Ks = np.array([[k, 0, 0.5 * k - 0.5], [0, k, 0.5 * k - 0.5], [0, 0, 1.0]])  # window -> shrunk px (centres)
     Ss = Ks @ S
     angle = math.degrees(math.atan2(-Ss[1, 0], Ss[0, 0]))
     S2, a2, score = fine_pose(u8, factor * k, window_u8(gray), Ss, angle, 1.0, float(turn_deg),
