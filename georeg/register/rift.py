@@ -1133,7 +1133,7 @@ def turned(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, 
         return H, {"deg": 0.0, "moved_px": 0.0, "score": None}
     H2 = np.linalg.inv(Ks @ P) @ S2
     c = np.array([(w - 1) / 2, (h - 1) / 2, 1.0])
-    moved = float(np.linalg.norm((Ks @ P @ H2 @ c)[:2] - (Ks @ P @ H @ c)[:2]) / k)
+    moved = float(np.linalg.norm((P @ H2 @ c)[:2] - (P @ H @ c)[:2]))  # orthophoto px
     return H2, {"deg": round(a2 - angle, 2), "moved_px": round(moved, 2), "score": round(score, 4)}
 
 
