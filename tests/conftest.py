@@ -11,6 +11,13 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
 
+# The Slurm executor plugin asks `scontrol show config` for MinJobAge when snakemake starts, even
+# for a local run. Where the Slurm client is installed but no controller answers (a machine after
+# tests/test_slurm.py stopped its cluster), every `snakemake` the tests start waits ~10 s for it.
+# An empty Slurm configuration makes scontrol fail at once; test_slurm.py takes the real one back.
+NO_SLURM_CONF = "/dev/null"
+os.environ.setdefault("SLURM_CONF", NO_SLURM_CONF)
+
 
 @pytest.fixture(scope="session", autouse=True)
 def _session_cwd(tmp_path_factory):

@@ -71,6 +71,18 @@ def _tail(text: str, n: int = 40) -> str:
     return "\n".join(text.splitlines()[-n:])
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _real_slurm_conf():
+    """conftest.py points SLURM_CONF at an empty file for every other test (local runs do not wait
+    for a controller); this module talks to the real cluster, so it gets the system's file back."""
+    if os.environ.get("SLURM_CONF") != "/dev/null":
+        yield
+        return
+    del os.environ["SLURM_CONF"]
+    yield
+    os.environ["SLURM_CONF"] = "/dev/null"
+
+
 @pytest.fixture(scope="module")
 def slurm_cluster():
     """A running single-node Slurm with accounting; stopped afterwards if this test started it."""
