@@ -290,17 +290,18 @@ def _pucallpa_without_gsd(name: str):
     return bx.run_pipeline(q, sc, bd.METHODS["wf_rift_nogsd"], bx.query_seed(11, q.name)), q, sc, bd
 
 
-def _control_runner(seed: int):
+def _control_runner(seed: int, query: str = "visible"):
     """bench_crossspectral and ``run(name, rift_conf={})``: one query of Pucallpa's
-    visible control (draw ``seed``, blanked maps included) through the workflow's register path
-    (``wf_rift``, its rift section updated by ``rift_conf``) -> (record, query, scene)."""
+    visible control (``query`` "swir": the set itself; draw ``seed``, blanked maps included)
+    through the workflow's register path (``wf_rift``, its rift section updated by
+    ``rift_conf``) -> (record, query, scene)."""
     import sys
 
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import bench_crossspectral as bx
     import bench_devset as bd
 
-    scenes, queries = bd.build_pucallpa(seed, unrelated=True, query="visible")
+    scenes, queries = bd.build_pucallpa(seed, unrelated=True, query=query)
 
     def run(name: str, rift_conf: dict | None = None):
         q = next(x for x in queries if x.name == name)
@@ -332,6 +333,25 @@ def test_pucallpa_second_pass_keeps_to_the_refused_candidates_place(shared_data)
             assert bx.judge(q, sc, res)["error_px"] <= 5.0
         else:
             assert res["second_pass"]["elsewhere"]["distance_m"] > 100 * 90.0
+
+
+def test_pucallpa_turn_at_the_search_scale_before_the_structure_check(shared_data):
+    """Landsat Pucallpa's second draw (seed 17) through the workflow's register path
+    (``wf_rift``). The 2020 SWIR crop 0 on the 1985 map: the polish's refit came out 5.5 % too
+    small and a turn at that scale left it 5.5 px off (a false accept); turned at the search's
+    scale it is within 2 px. The 2000 crop 1 on the 2015 map with its place blanked: rift
+    accepts a look-alike meander (log10 NFA -2.6) whose polished pose passed the structure
+    check (z 3.5 >= 2.75 for a weak pose); at its turned pose the structure agrees no better
+    than nearby (z 1.4) and it is refused (session 40)."""
+    if not (shared_data / "swir_dates" / "landsat_pucallpa" / "2015.tif").exists():
+        pytest.skip("Landsat Pucallpa absent")
+    bx, run = _control_runner(17, query="swir")
+    res, q, sc = run("puc_2020_on_1985_0_1.6um")
+    assert res["accepted"] and bx.judge(q, sc, res)["error_px"] < 2.0, res.get("reason")
+    res, q, sc = run("puc_2000_on_2015_1_1.6um_blanked")
+    assert not res["accepted"], res
+    rec = res["rift"]  # registration.json's split.rift
+    assert "look-alike" in rec["reason"] and rec["structure"]["z"] < 2.0, (rec["reason"], rec["structure"])
 
 
 def test_pucallpa_blanked_map_rejected_by_the_measured_null(shared_data):
@@ -426,6 +446,12 @@ def test_turned_pose_is_brought_back_by_the_footprint_correlation():
     assert err(back) < 1.0 and abs(rec["deg"] + 5.0) <= 1.0, (err(back), rec)
     same, rec = rift.turned(q, to_map @ truth, read, {}, 8.0)
     assert err(same) < 0.3 and rec["deg"] == 0.0, (err(same), rec)
+    # the polish's refit 5 % too small (its tie points on land that changed): the turn keeps
+    # the scale of the pose the search found
+    small = off @ c @ np.diag([0.95, 0.95, 1.0]) @ np.linalg.inv(c)
+    assert err(rift.turned(q, to_map @ small, read, {}, 8.0)[0]) > 4.0
+    back, rec = rift.turned(q, to_map @ small, read, {}, 8.0, found=to_map @ off)
+    assert err(back) < 1.0, (err(back), rec)
     # a pose found at a ground aspect (not square on the map's grid) is left as it is
     squeezed = to_map @ off @ np.diag([1.0, 0.8, 1.0])
     kept, rec = rift.turned(q, to_map @ off, read, {}, 8.0, found=squeezed)

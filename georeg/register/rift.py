@@ -1087,20 +1087,20 @@ def turned(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, 
            ) -> tuple[np.ndarray, dict[str, Any] | None]:  # fmt: skip
     """An accepted pose (query px -> map x, y) moved to the peak of the whole footprint's CFOG
     correlation with the orthophoto (read around it through ``read_window``, as ``polish`` does)
-    among similarities at its scale: rotations within ``turn_deg`` of its own (1 deg steps), the
-    query centre within ``TURN_BOX_PX`` orthophoto px (``null_scan.fine_pose``), at most
-    ``max_side`` px across. A rift pose is fit to a few 36 px cells at a 10 deg step, so it is
-    often a few degrees off; the tie-point refit of ``polish`` follows the changed land of a
-    cross-date pair, one correlation over the whole footprint does not (Landsat Pucallpa,
-    session 39). The pose is turned once it is accepted: the correlation's peak is flat within a
-    degree or two, so on a weak pose it moves with noise, and the acceptance (the polish's gain,
-    the structure check) stays on the pose the search found. A pose ``found`` (the search's,
-    before the polish; ``H`` when None) more anisotropic than ``TURN_MAX_ANISOTROPY`` on the
-    window's grid (a search at a ground aspect, ``MapView.aspect``) is left as it is; else the
-    turned pose is the similarity the correlation peaks at (the polish's affine refit, up to
-    13 % anisotropic on a square grid, is noise there). Returns the pose and a record (None when
-    the footprint misses the orthophoto; ``deg``: the turn, ``moved_px``: the centre's move in
-    orthophoto px, ``score``)."""
+    among similarities at the scale of the pose ``found`` (the search's, before the polish;
+    ``H`` when None): rotations within ``turn_deg`` of its own (1 deg steps), the query centre
+    within ``TURN_BOX_PX`` orthophoto px (``null_scan.fine_pose``), at most ``max_side`` px
+    across. A rift pose is fit to a few 36 px cells at a 10 deg step, so it is often a few
+    degrees off; the tie-point refit of ``polish`` follows the changed land of a cross-date
+    pair, one correlation over the whole footprint does not (Landsat Pucallpa, session 39).
+    The refit's scale drifts the same way (5.5 % on a 2020 crop of the 1985 map, a false accept
+    at 5.5 px), so the turn keeps the search's (rigid at a known GSD; session 40). A pose
+    ``found`` more anisotropic than ``TURN_MAX_ANISOTROPY`` on the window's grid (a search at a
+    ground aspect, ``MapView.aspect``) is left as it is; else the turned pose is the similarity
+    the correlation peaks at (the polish's affine refit, up to 13 % anisotropic on a square
+    grid, is noise there). Returns the pose and a record (None when the footprint misses the
+    orthophoto; ``deg``: the turn, ``moved_px``: the centre's move in orthophoto px,
+    ``score``)."""
     from georeg.register import ortho_check
     from georeg.register.dense import window_u8
     from georeg.register.null_scan import fine_pose
@@ -1116,7 +1116,7 @@ def turned(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, 
     sv = np.linalg.svd((P @ (H if found is None else found))[:2, :2], compute_uv=False)
     if sv[0] > TURN_MAX_ANISOTROPY * sv[1]:  # found on a map whose pixels are not square on the ground
         return H, {"deg": 0.0, "moved_px": 0.0, "score": None, "reason": "not a similarity on the map grid"}
-    factor = math.sqrt(abs(np.linalg.det(S[:2, :2])))
+    factor = math.sqrt(abs(np.linalg.det((P @ (H if found is None else found))[:2, :2])))
     k = min(1.0, max_side / (max(h, w) * factor))  # the window shrunk so the query is <= max_side
     gray = img.gray
     if k < 1.0:  # fx = fy = k: OpenCV samples at exactly that scale
@@ -1412,8 +1412,10 @@ def _verify(r: dict[str, Any], H: np.ndarray | None, rec: dict[str, Any], u8: np
     """One search's accepted pose verified (``r`` and ``rec`` updated in place): refit to the
     orthophoto (``polish``; refused when a moved pose is better supported) and its structure
     agreement (``structure_check``; a weak pose needs ``STRUCTURE_WEAK`` x ``structure_z_min``,
-    one at a guessed GSD ``STRUCTURE_GUESSED`` x). A refused pose leaves the other searches to
-    run. An accepted pose is then turned (``turned``). Returns the pose to use."""
+    one at a guessed GSD ``STRUCTURE_GUESSED`` x), checked on the polished pose turned to its
+    footprint's correlation peak (``turned``: at the search's scale, it leaves a look-alike
+    meander's structure below what a true pose keeps; session 40). A refused pose leaves the
+    other searches to run. Returns the pose to use."""
     if not r["accepted"] or H is None:
         return H
     found = H
@@ -1423,6 +1425,8 @@ def _verify(r: dict[str, Any], H: np.ndarray | None, rec: dict[str, Any], u8: np
             r["accepted"] = rec["accepted"] = False
             rec["reason"] = "the orthophoto's tie points support a moved pose better (gain < 1)"
             return H
+    if float(c["turn_deg"]) > 0:
+        H, rec["turn"] = turned(u8, H, view.read_window, conf, float(c["turn_deg"]), found=found)
     zmin = float(c["structure_z_min"])
     if zmin > 0:
         # a weak pose (log10 NFA above the strip rule's line) needs more of the structure
@@ -1438,8 +1442,6 @@ def _verify(r: dict[str, Any], H: np.ndarray | None, rec: dict[str, Any], u8: np
                              f"better than at random poses nearby (z {st['z']:.1f} < {need:g}"
                              f"{''.join(', ' + w for w in why)}): a look-alike")  # fmt: skip
             return H
-    if float(c["turn_deg"]) > 0:
-        H, rec["turn"] = turned(u8, H, view.read_window, conf, float(c["turn_deg"]), found=found)
     return H
 
 
