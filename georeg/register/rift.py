@@ -1412,10 +1412,11 @@ def _verify(r: dict[str, Any], H: np.ndarray | None, rec: dict[str, Any], u8: np
     """One search's accepted pose verified (``r`` and ``rec`` updated in place): refit to the
     orthophoto (``polish``; refused when a moved pose is better supported) and its structure
     agreement (``structure_check``; a weak pose needs ``STRUCTURE_WEAK`` x ``structure_z_min``,
-    one at a guessed GSD ``STRUCTURE_GUESSED`` x), checked on the polished pose turned to its
-    footprint's correlation peak (``turned``: at the search's scale, it leaves a look-alike
-    meander's structure below what a true pose keeps; session 40). A refused pose leaves the
-    other searches to run. Returns the pose to use."""
+    one at a guessed GSD ``STRUCTURE_GUESSED`` x). A refused pose leaves the other searches to
+    run. An accepted pose is then turned (``turned``): turned first, a chance pose's structure
+    rises with it (the turn picks the best of ~2,900 poses nearby, the check's random poses are
+    not picked; a Sentinel-2 city's chance pose on another city's map went past the check,
+    session 40). Returns the pose to use."""
     if not r["accepted"] or H is None:
         return H
     found = H
@@ -1425,8 +1426,6 @@ def _verify(r: dict[str, Any], H: np.ndarray | None, rec: dict[str, Any], u8: np
             r["accepted"] = rec["accepted"] = False
             rec["reason"] = "the orthophoto's tie points support a moved pose better (gain < 1)"
             return H
-    if float(c["turn_deg"]) > 0:
-        H, rec["turn"] = turned(u8, H, view.read_window, conf, float(c["turn_deg"]), found=found)
     zmin = float(c["structure_z_min"])
     if zmin > 0:
         # a weak pose (log10 NFA above the strip rule's line) needs more of the structure
@@ -1442,6 +1441,8 @@ def _verify(r: dict[str, Any], H: np.ndarray | None, rec: dict[str, Any], u8: np
                              f"better than at random poses nearby (z {st['z']:.1f} < {need:g}"
                              f"{''.join(', ' + w for w in why)}): a look-alike")  # fmt: skip
             return H
+    if float(c["turn_deg"]) > 0:
+        H, rec["turn"] = turned(u8, H, view.read_window, conf, float(c["turn_deg"]), found=found)
     return H
 
 
