@@ -1113,10 +1113,11 @@ def turned(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, 
     T = np.array(tuple(img.transform)[:6] + (0.0, 0.0, 1.0), float).reshape(3, 3)
     P = np.linalg.inv(T @ np.array([[1, 0, 0.5], [0, 1, 0.5], [0, 0, 1.0]]))  # map -> window px (centres)
     S = P @ H
-    sv = np.linalg.svd((P @ (H if found is None else found))[:2, :2], compute_uv=False)
+    F = (P @ (H if found is None else found))[:2, :2]  # the search's pose on the window's grid
+    sv = np.linalg.svd(F, compute_uv=False)
     if sv[0] > TURN_MAX_ANISOTROPY * sv[1]:  # found on a map whose pixels are not square on the ground
         return H, {"deg": 0.0, "moved_px": 0.0, "score": None, "reason": "not a similarity on the map grid"}
-    factor = math.sqrt(abs(np.linalg.det((P @ (H if found is None else found))[:2, :2])))
+    factor = math.sqrt(abs(np.linalg.det(F)))  # its scale, not the polish's
     k = min(1.0, max_side / (max(h, w) * factor))  # the window shrunk so the query is <= max_side
     gray = img.gray
     if k < 1.0:  # fx = fy = k: OpenCV samples at exactly that scale
