@@ -75,12 +75,10 @@ def _tail(text: str, n: int = 40) -> str:
 def _real_slurm_conf():
     """conftest.py points SLURM_CONF at an empty file for every other test (local runs do not wait
     for a controller); this module talks to the real cluster, so it gets the system's file back."""
-    if os.environ.get("SLURM_CONF") != "/dev/null":
+    with pytest.MonkeyPatch.context() as mp:
+        if os.environ.get("SLURM_CONF") == "/dev/null":  # conftest.NO_SLURM_CONF
+            mp.delenv("SLURM_CONF")
         yield
-        return
-    del os.environ["SLURM_CONF"]
-    yield
-    os.environ["SLURM_CONF"] = "/dev/null"
 
 
 @pytest.fixture(scope="module")
