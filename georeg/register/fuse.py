@@ -137,8 +137,10 @@ def fuse(
     for g in guides:
         Hg = Hs[g["part"]]
         reg = footprint_bounds(Hg, width, height, margin)
-        # a part found at a guessed GSD (rift without the query's) is judged at that guess
-        got = verify(full, source, reg, conf, gsd_m or g.get("guess_gsd"), n_candidates=len(guides), seed=seed,
+        # a part found at a guessed GSD (rift without the query's) is judged at the GSD its pose
+        # found: the similarity fit takes scales up to rift.GUESS_SCALE from the guess, so judged
+        # at the guess a true pose at 1.31x was refused (Landsat Pucallpa, session 41)
+        got = verify(full, source, reg, conf, gsd_m or g.get("found_gsd"), n_candidates=len(guides), seed=seed,
                      max_matches=int(fc.get("max_matches", 0)), guide=(Hg, radius))  # fmt: skip
         tries.append((g, reg, *got))
     ok = [t for t in tries if t[2]["accepted"]]
@@ -214,7 +216,7 @@ def fuse(
         # maps the query's square pixels to map units that are not square on the ground
         a = float(best.get("aspect") or 1.0)
         whole = acceptance.plausibility(np.diag([a**-0.5, a**0.5, 1.0]) @ Hb, width, height,
-                                        gsd_m or best.get("guess_gsd"), conf.get("acceptance") or {})  # fmt: skip
+                                        gsd_m or best.get("found_gsd"), conf.get("acceptance") or {})  # fmt: skip
         if not whole["ok"]:
             why = "; ".join(whole["reasons"])
             log.warning("full-query re-match not accepted (%s) and part %s's pose is not a "

@@ -1094,7 +1094,7 @@ def turned(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, 
     degrees off; the tie-point refit of ``polish`` follows the changed land of a cross-date
     pair, one correlation over the whole footprint does not (Landsat Pucallpa, session 39).
     The refit's scale drifts the same way (5.5 % on a 2020 crop of the 1985 map, a false accept
-    at 5.5 px), so the turn keeps the search's (rigid at a known GSD; session 40). A pose
+    at 5.5 px), so the turn keeps the search's when it is rigid at a known GSD (session 40). A pose
     ``found`` more anisotropic than ``TURN_MAX_ANISOTROPY`` on the window's grid (a search at a
     ground aspect, ``MapView.aspect``) is left as it is; else the turned pose is the similarity
     the correlation peaks at (the polish's affine refit, up to 13 % anisotropic on a square
@@ -1414,7 +1414,10 @@ def _verify(r: dict[str, Any], H: np.ndarray | None, rec: dict[str, Any], u8: np
     orthophoto (``polish``; refused when a moved pose is better supported) and its structure
     agreement (``structure_check``; a weak pose needs ``STRUCTURE_WEAK`` x ``structure_z_min``,
     one at a guessed GSD ``STRUCTURE_GUESSED`` x). A refused pose leaves the other searches to
-    run. An accepted pose is then turned (``turned``): turned first, a chance pose's structure
+    run. An accepted pose is then turned (``turned``) at the scale the search found when the GSD
+    is known (rigid: exact), at the polish's when it was guessed (a similarity's scale from a few
+    cells: turned at it, 4 of 28 Pucallpa poses came 8-9.6 px off, seed 11's checking half with
+    the GSD withheld, session 41). Turned first, a chance pose's structure
     rises with it (the turn picks the best of ~2,900 poses nearby, the check's random poses are
     not picked; a Sentinel-2 city's chance pose on another city's map went past the check,
     session 40). Returns the pose to use."""
@@ -1443,7 +1446,8 @@ def _verify(r: dict[str, Any], H: np.ndarray | None, rec: dict[str, Any], u8: np
                              f"{''.join(', ' + w for w in why)}): a look-alike")  # fmt: skip
             return H
     if float(c["turn_deg"]) > 0:
-        H, rec["turn"] = turned(u8, H, view.read_window, conf, float(c["turn_deg"]), found=found)
+        H, rec["turn"] = turned(u8, H, view.read_window, conf, float(c["turn_deg"]),
+                                found=None if guessed else found)
     return H
 
 
@@ -1532,7 +1536,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
                 "inliers": r["inliers"], "matches": r["matches"], "residual_px": None,
                 "method": key, "part": len(parts), "rows": [0, u8.shape[0]], "whole_query": True,
                 "candidates_tried": int(rec["candidates"]), "candidates": [], "aspect": rec["aspect"],
-                **({"guess_gsd": rec["guess"]} if "guess" in rec else {})}  # fmt: skip
+                **({"found_gsd": rec["gsd"]} if "guess" in rec else {})}  # fmt: skip
         parts = [*parts, part]
     return parts, rec
 
