@@ -1417,13 +1417,13 @@ def _verify(r: dict[str, Any], H: np.ndarray | None, rec: dict[str, Any], u8: np
     run. An accepted pose is then turned (``turned``) at the scale the search found when the GSD
     is known (rigid: exact), at the polish's when it was guessed (a similarity's scale from a few
     cells: turned at it, 4 of 28 Pucallpa poses came 8-9.6 px off, seed 11's checking half with
-    the GSD withheld, session 41). Turned first, a chance pose's structure
-    rises with it (the turn picks the best of ~2,900 poses nearby, the check's random poses are
-    not picked; a Sentinel-2 city's chance pose on another city's map went past the check,
-    session 40). Returns the pose to use."""
+    the GSD withheld, session 41). Turned first, a chance pose's structure rises with it (the
+    turn picks the best of ~2,900 poses nearby, the check's random poses are not picked; a
+    Sentinel-2 city's chance pose on another city's map went past the check, session 40).
+    Returns the pose to use."""
     if not r["accepted"] or H is None:
         return H
-    found = H
+    found = None if guessed else H  # the scale the turn keeps: the search's when it is exact
     if c["polish"]:
         H, rec["polish"] = polish(u8, H, view.read_window, conf)
         if rec["polish"] and rec["polish"]["moved_better"]:
@@ -1446,8 +1446,7 @@ def _verify(r: dict[str, Any], H: np.ndarray | None, rec: dict[str, Any], u8: np
                              f"{''.join(', ' + w for w in why)}): a look-alike")  # fmt: skip
             return H
     if float(c["turn_deg"]) > 0:
-        H, rec["turn"] = turned(u8, H, view.read_window, conf, float(c["turn_deg"]),
-                                found=None if guessed else found)
+        H, rec["turn"] = turned(u8, H, view.read_window, conf, float(c["turn_deg"]), found=found)
     return H
 
 
