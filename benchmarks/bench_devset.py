@@ -516,6 +516,11 @@ METHODS: dict[str, dict[str, Any]] = {
                                           "learned": {"enabled": False}}, "bands": 1, "no_gsd": True},
     "wf_rift_nogsd": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": False}}, "bands": 1,
                       "no_gsd": True},
+    # with a location prior (issue 34 item 4, queries.<name>.prior): a square of half side 2
+    # query sides around the true centre moved by a seeded offset of up to half of that (an
+    # outside query: at a seeded place of its map; bench_crossspectral.location_prior)
+    "wf_rift_prior2": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": False}}, "bands": 1,
+                       "prior": 2.0},
     # + the learned source (XFeat in rift's search, fuse.SOURCES after rift; session 27)
     "wf_learned": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": True}}, "bands": 1},
     "wf_learned_nogsd": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": True}}, "bands": 1,
