@@ -545,9 +545,11 @@ def location_prior(q: Query, sc_map: Scene, factor: float, seed: int) -> dict[st
     return {"centre": [float(c[0]), float(c[1])], "radius_m": float(r)}
 
 
-def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> dict[str, Any]:
+def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int, read_elevation: Any = None,
+                 elevation_id: str | None = None) -> dict[str, Any]:  # fmt: skip
     """The workflow's registration stages (georeg.register.fuse.register_query) on plain arrays;
-    with ``spec["refine"]`` also the refinement stage."""
+    with ``spec["refine"]`` also the refinement stage. ``read_elevation`` / ``elevation_id``: the
+    map's DSM (register_query's; benchmarks/bench_elevation.py)."""
     from georeg.register.fuse import register_query
     from georeg.register.search import MapSource
 
@@ -561,7 +563,8 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int) -> di
     # ``no_gsd``: the query's GSD withheld, as a user who does not know it (the guesses searched)
     gsd, factors = (None, conf["unknown_gsd_factors"]) if spec.get("no_gsd") else (q.gsd, [q.gsd / fgsd])
     res = register_query(u8, src, conf, gsd, factors, seed, plain_window_reader(sc_map),
-                         prior, plain_level_reader(sc_map), map_identity(sc_map))  # fmt: skip
+                         prior, plain_level_reader(sc_map), map_identity(sc_map),
+                         read_elevation=read_elevation, elevation_id=elevation_id)  # fmt: skip
     split = res.get("split") or {}
     wins = (split.get("small") or {}).get("windows") or []
     sw = [w.get("log10_nfa") for w in wins if w.get("log10_nfa") is not None]

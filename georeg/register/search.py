@@ -140,6 +140,8 @@ def map_for_query(
     ortho_id: str | None = None,
     cache_dir: str | None = None,
     aspect: float = 1.0,
+    read_elevation: Any = None,
+    elevation_id: str | None = None,
 ) -> tuple[MapView, list[float], dict[str, Any] | None]:
     """The map a query searches and the query's resize factors: the map clipped to the
     location prior (``clip_to_prior``), and, when the query is much coarser than the map's
@@ -147,10 +149,11 @@ def map_for_query(
     features (``georeg.register.level``) with the query at factor 1; the dense sources and checks
     then read the orthophoto at that level too (``level.window_reader``: the null scan, the
     small-query windows and the orthophoto check shrink the map to about the query's GSD
-    anyway). ``ortho_id`` / ``cache_dir`` / ``aspect``: ``MapView``'s. Returns (view, factors, the level's
+    anyway). ``ortho_id`` / ``cache_dir`` / ``aspect`` / ``read_elevation`` / ``elevation_id``:
+    ``MapView``'s. Returns (view, factors, the level's
     record or None when no level was asked for)."""
     source = clip_to_prior(source, prior, width, height, gsd_m, factors)
-    view = MapView(source, read_window, ortho_id, cache_dir, aspect)
+    view = MapView(source, read_window, ortho_id, cache_dir, aspect, read_elevation, elevation_id)
     lconf = {**level.DEFAULTS, **(conf.get("level") or {})}
     g = level.level_gsd(gsd_m, source.gsd_m, lconf)
     if g is None:
@@ -275,13 +278,18 @@ class MapView:
     and on disk under ``cache_dir`` when given. ``aspect``: the width / height in map units of a
     map pixel that is square on the ground, when that may differ from 1 (a lon/lat orthophoto
     whose pixels are square on the ground, not in degrees: ``georeg.map.grid.ground_aspect``);
-    rift's map-wide search (``rift.source``) searches it beside the square pixel."""
+    rift's map-wide search (``rift.source``) searches it beside the square pixel.
+    ``read_elevation`` / ``elevation_id``: the map's DSM, read and keyed like the orthophoto
+    (None: no elevation), which the ``elevation`` source matches as an image
+    (``rift.elevation_source``)."""
 
     source: MapSource
     read_window: Any = None
     ortho_id: str | None = None
     cache_dir: str | None = None
     aspect: float = 1.0
+    read_elevation: Any = None
+    elevation_id: str | None = None
 
 
 SPLIT_DEFAULTS: dict[str, Any] = {

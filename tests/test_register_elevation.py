@@ -1,0 +1,55 @@
+"""The map's DSM as an image to match (``register.elevation``, ``rift.elevation_source``) on real
+data: brighton's orthophoto and DSM (../shared/data/brighton; skipped without it)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.benchmark_module import load
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def case(shared_data):
+    if not (shared_data / "brighton" / "elevation.tif").exists():
+        pytest.skip("brighton absent")
+    be = load("bench_elevation")
+    bx = be.bx
+    gray, z, g = be.brighton()
+    src = bx.Scene("brighton", {"gray": gray}, g, np.zeros(gray.shape, np.uint8), g, lambda p: p,
+                   scale_range=be.SCENES["brighton"][2])  # fmt: skip
+    rng = np.random.default_rng(11)
+    q = bx.make_query(src, rng, 0, frac=float(rng.uniform(*be.SCENES["brighton"][1])))
+    # the orthophoto blanked over the query's place: its sources cannot find it
+    sc = bx.Scene("brighton_ortho_test", {}, g, be._blank(bx._stretch(gray), q), g, lambda p: p)
+
+    def run(dsm: np.ndarray, enabled: bool = True) -> dict:
+        spec = {"pipeline": {"elevation": {"enabled": enabled}, "learned": {"enabled": False}}, "bands": 1}
+        return bx.run_pipeline(q, sc, spec, 11, read_elevation=be.height_reader(dsm, g),
+                               elevation_id=f"test:{enabled}:{float(np.nansum(dsm)):.3f}")  # fmt: skip
+
+    return be, bx, q, sc, z, run
+
+
+def test_dsm_registers_an_optical_query_where_the_orthophoto_has_nothing(case):
+    """An optical crop (0.21 m, rotated) of brighton on a map whose orthophoto is blanked over
+    its place: the orthophoto's sources find nothing, the DSM read as an image registers it
+    within the benchmark's 5 map px (2.5 px when written)."""
+    be, bx, q, sc, z, run = case
+    res = run(z)
+    assert res["accepted"] and res["pose_source"] == "elevation", res["sources"]
+    assert bx.judge(q, sc, res)["error_px"] < 5.0
+    off = run(z, enabled=False)
+    assert not off["accepted"]
+    assert [s["name"] for s in off["sources"]][-1] != "elevation"
+
+
+def test_dsm_blanked_too_is_not_found(case):
+    """Nothing of the map shows the place (the DSM blanked there too): not_found, the elevation
+    source having run."""
+    be, bx, q, sc, z, run = case
+    res = run(be._blank(z, q))
+    assert not res["accepted"]
+    assert "elevation" in [s["name"] for s in res["sources"]]
