@@ -19,6 +19,7 @@ import json
 import logging
 import math
 import time
+from collections import OrderedDict
 from pathlib import Path
 from typing import Any
 
@@ -237,8 +238,29 @@ def rift_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
     return out
 
 
+#: the filter banks kept for the next image of the same size (the structure check's ~150
+#: windows of one size, the map's windows): least recently used out past this many bytes
+FILTER_MEMO_BYTES = 256 * 2**20
+_FILTER_MEMO: OrderedDict[tuple, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+
+
 def _filters(shape: tuple[int, int], c: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-    """Radial log-Gabor filters (nscale, h, w) and angular spreads (norient, h, w)."""
+    """Radial log-Gabor filters (nscale, h, w) and angular spreads (norient, h, w), kept per
+    size and settings (``FILTER_MEMO_BYTES``; read only)."""
+    key = (*shape, *(c[k] for k in ("nscale", "min_wavelength", "mult", "sigma_onf", "norient")))
+    if key in _FILTER_MEMO:
+        _FILTER_MEMO.move_to_end(key)
+        return _FILTER_MEMO[key]
+    got = _filter_bank(shape, c)
+    for a in got:
+        a.setflags(write=False)
+    _FILTER_MEMO[key] = got
+    while sum(a.nbytes + b.nbytes for a, b in _FILTER_MEMO.values()) > FILTER_MEMO_BYTES and len(_FILTER_MEMO) > 1:
+        _FILTER_MEMO.popitem(last=False)
+    return got
+
+
+def _filter_bank(shape: tuple[int, int], c: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     h, w = shape
     fy = sfft.fftfreq(h)[:, None]
     fx = sfft.fftfreq(w)[None, :]
