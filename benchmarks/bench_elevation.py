@@ -33,6 +33,7 @@ import argparse
 import json
 import math
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -97,7 +98,7 @@ def autzen(cell_ft: float = 1.25, fill: int = 3) -> tuple[np.ndarray, np.ndarray
 
 
 #: scene -> (loader, crop side as a fraction of the scene's smaller side, query px per map px)
-SCENES = {"brighton": (brighton, (0.35, 0.5), (0.55, 0.85)), "autzen": (autzen, (0.6, 0.8), (0.7, 0.9))}
+SCENES = {"brighton": (brighton, (0.35, 0.5), (0.55, 0.85)), "autzen": (autzen, (0.55, 0.7), (0.7, 0.9))}
 
 
 def _blank(img: np.ndarray, q: bx.Query, pad: int = 10) -> np.ndarray:
@@ -125,6 +126,47 @@ def height_reader(z: np.ndarray, g: float) -> Any:
     return read
 
 
+def srif_depth_as_map(per_half: int, seed: int, verbose: bool) -> list[dict[str, Any]]:
+    """SRIF optical-depth pairs reversed (the public stand-in, ../shared/data/srif_dev): the
+    optical reference (north-up) is the query, the depth image (rotated 0-90 deg, black fill =
+    nodata) the map at 1 m; truth = the GT (bench_devset.srif_images), success within 8 map px
+    (the data README's scoring, in depth-image px). The elevation source's search alone
+    (``rift.register``, as ``bench_devset``'s ``src_rift``: no polish, structure check or turn)
+    and plain SIFT; the first ``per_half`` pairs of each half (1-99 tuning, 101-199 checking)."""
+    import bench_devset as bd
+
+    from georeg.register import rift
+
+    rows = []
+    for half in ("tuning", "checking"):
+        pairs = [i for i in bd.srif_pairs("od") if bd.srif_half(i) == half][:per_half]
+        for i in pairs:
+            ref, dep, A0 = bd.srif_images("od", i)
+            s = math.sqrt(abs(np.linalg.det(A0[:2, :2])))  # map (depth) px per query px
+            qp = bd.truth_grid(ref)
+            q = bx.Query(f"od_{i}_reversed", "srif", "srif", {"gray": np.maximum(ref, 1)}, s, qp,
+                         bx.matching.apply_h(A0, qp))  # fmt: skip
+            sc = bx.Scene(f"srif_od_depth_{i}", {}, 1.0, dep, 1.0, lambda p: p)
+            for m in ("sift_plain", "src_elevation"):
+                if m == "sift_plain":
+                    res = bx.run_method(q, sc, bx.METHODS["sift_plain"], seed)
+                else:
+                    t0 = time.perf_counter()
+                    r = rift.register(q.bands["gray"], dep, s, {"log_nfa_max": 0.0}, {})
+                    H = None if r["H"] is None else np.diag([1.0, -1.0, 1.0]) @ r["H"]  # map px -> x, -y
+                    res = {"accepted": r["accepted"], "H": H, "seconds": time.perf_counter() - t0}
+                j = bx.judge(q, sc, res)
+                ok = j["outcome"] == "success" or (j["outcome"] == "false_accept" and j["error_px"] <= 8.0)
+                j["outcome"] = "success" if ok else j["outcome"]
+                rows.append({"scene": "srif_od", "query": q.name, "kind": "in_map", "half": half, "method": m,
+                             "side_px": int(ref.shape[0]), "gsd": s, "pose_source": None,
+                             "seconds": res.get("seconds"), **j})  # fmt: skip
+                if verbose:
+                    e = "-" if j["error_px"] is None else f"{j['error_px']:.2f}"
+                    print(f"{half[:5]} {q.name:28s} {m:13s} {j['outcome']:13s} err {e:>7s}", flush=True)
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="brighton,autzen")
@@ -132,11 +174,13 @@ def main() -> None:
     ap.add_argument("--per-scene", type=int, default=8)
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--no-outside", action="store_true")
+    ap.add_argument("--srif-od", type=int, default=0,
+                    help="also SRIF optical-depth reversed (the depth image as the map), this many pairs a half")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "out" / "elevation.json"))
     ap.add_argument("-v", action="store_true")
     a = ap.parse_args()
     rows = []
-    for name in a.scenes.split(","):
+    for name in [n for n in a.scenes.split(",") if n]:
         load, frac, scale = SCENES[name]
         gray, z, g = load()
         src = bx.Scene(name, {"gray": gray}, g, np.zeros(gray.shape, np.uint8), g, lambda p: p)
@@ -170,11 +214,13 @@ def main() -> None:
                         e = "-" if j["error_px"] is None else f"{j['error_px']:.2f}"
                         print(f"{half[:5]} {qq.name:28s} {m:13s} {j['outcome']:13s} err {e:>7s} "
                               f"{row['pose_source'] or '-':10s} {row['seconds'] or 0:6.1f}s", flush=True)  # fmt: skip
+    if a.srif_od:
+        rows += srif_depth_as_map(a.srif_od, a.seed, a.v)
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps(rows, indent=1, default=float))
     print("| method | half | registered | false accepts | outside accepted | median err px | s/query |")
     print("|---|---|---:|---:|---:|---:|---:|")
-    for m in a.methods.split(","):
+    for m in dict.fromkeys(x["method"] for x in rows):
         for half in ("tuning", "checking"):
             r = [x for x in rows if x["method"] == m and x["half"] == half]
             ins = [x for x in r if x["kind"] == "in_map"]
