@@ -6,9 +6,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from georeg.register import rift
+from georeg.register.search import MapSource, MapView
 from tests.benchmark_module import load
 
-pytestmark = pytest.mark.slow
+
+def test_not_run_without_elevation_or_when_disabled():
+    """The source says why it did not run: no DSM in the view, or disabled; the parts unchanged."""
+    view = MapView(MapSource(np.zeros((0, 2)), np.zeros((0, 128), np.uint8), 1.0), read_window=lambda b: None)
+    parts = [{"part": 0, "accepted": False}]
+    got, rec = rift.elevation_source(None, view, parts, {"elevation": {"enabled": True}})
+    assert got == parts and rec == {"ran": False, "reason": "no elevation"}
+    got, rec = rift.elevation_source(None, view, parts, {"elevation": {"enabled": False}})
+    assert got == parts and rec == {"ran": False, "reason": "disabled"}
 
 
 @pytest.fixture(scope="module")
@@ -33,6 +43,7 @@ def case(shared_data):
     return be, bx, q, sc, z, run
 
 
+@pytest.mark.slow
 def test_dsm_registers_an_optical_query_where_the_orthophoto_has_nothing(case):
     """An optical crop (0.21 m, rotated) of brighton on a map whose orthophoto is blanked over
     its place: the orthophoto's sources find nothing, the DSM read as an image registers it
@@ -46,6 +57,7 @@ def test_dsm_registers_an_optical_query_where_the_orthophoto_has_nothing(case):
     assert [s["name"] for s in off["sources"]][-1] != "elevation"
 
 
+@pytest.mark.slow
 def test_dsm_blanked_too_is_not_found(case):
     """Nothing of the map shows the place (the DSM blanked there too): not_found, the elevation
     source having run."""

@@ -1514,7 +1514,8 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     # the query's GSD, or, unknown, guesses spanning the feature search's (``unknown_gsd_factors``)
     gsds = [float(q.gsd)] if q.gsd is not None else gsd_guesses(float(view.source.gsd_m), q.factors)
     guessed = q.gsd is None  # and so is the pose's scale: a similarity fit
-    why = "no orthophoto" if view.read_window is None else ""
+    image = "DSM" if key == "elevation" else "orthophoto"  # what ``view.read_window`` reads
+    why = f"no {image}" if view.read_window is None else ""
     b = tuple(float(v) for v in view.source.bounds)
     g = min(working_gsd(v, view, c) for v in gsds)
     if not why and (b[2] - b[0]) * (b[3] - b[1]) / g**2 > c["max_map_px"]:
@@ -1544,7 +1545,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
             if guessed and got[0]["accepted"] and got[0]["log10_nfa"] < strong:
                 break  # a strong verified pose at a guess: the others' tests counted all the same
     if not passes:
-        return parts, {"ran": False, "reason": "orthophoto window unreadable"}
+        return parts, {"ran": False, "reason": f"{image} window unreadable or nodata"}
     r, H, rec = max(passes, key=lambda p: (bool(p[0]["accepted"]), -p[0]["log10_nfa"]))
     if len(runs) > 1:  # every search run, listed under what it varied: the aspect, the GSD guess
         keys = ("aspect", "gsd", "guess", "candidates", "accepted", "log10_nfa", "inliers", "reason")
@@ -1589,4 +1590,3 @@ def elevation_source(q: Any, view: Any, parts: list[dict[str, Any]],
     ev = replace(view, read_window=view.read_elevation,
                  ortho_id=None if view.elevation_id is None else f"elevation:{view.elevation_id}")
     return source(q, ev, parts, {**conf, "elevation": {**(conf.get("rift") or {}), **ec}}, key="elevation")
-
