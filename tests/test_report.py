@@ -478,3 +478,15 @@ def test_sources_text_names_each_source_and_why_rift_decided_nothing() -> None:
     reg["second_pass"]["elsewhere"] = {"distance_m": 16800.0, "side_m": 13000.0,
                                        "reason": "the second pass's candidate lies 16800 map units away"}  # fmt: skip
     assert sources_text(reg).endswith("whole query; not kept: the second pass's candidate lies 16800 map units away")
+
+
+def test_sources_text_gives_the_elevation_source_its_decision() -> None:
+    """The elevation source (rift against the DSM) is reported like rift: its NFA and cells."""
+    reg = {"sources": [{"name": "features", "accepted": False, "candidates": 24},
+                       {"name": "elevation", "accepted": True, "candidates": 36}],
+           "split": {"elevation": {"ran": True, "accepted": True, "log10_nfa": -27.3,
+                                   "null_log10_nfa": 6.3, "matches": 57}}}  # fmt: skip
+    assert sources_text(reg) == (
+        "features (24 tried); elevation (36 tried, accepted): log10 NFA -27.3, other rotations' "
+        "best 6.3, 57 cells"
+    )

@@ -328,7 +328,7 @@ def sources_text(reg: Mapping[str, Any]) -> str | None:
     out = []
     for s in ran:
         t = f"{s.get('name')} ({s.get('candidates', 0)} tried{', accepted' if s.get('accepted') else ''})"
-        rift = (reg.get("split") or {}).get(s.get("name")) if s.get("name") in ("rift", "learned") else None
+        rift = (reg.get("split") or {}).get(s.get("name")) if s.get("name") in ("rift", "learned", "elevation") else None
         if rift:
             one = lambda v: "none" if v is None else f"{float(v):.1f}"  # noqa: E731
             t += (f": log10 NFA {one(rift.get('log10_nfa'))}, other rotations' best "
