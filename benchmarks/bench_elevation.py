@@ -101,6 +101,16 @@ def autzen(cell_ft: float = 1.25, fill: int = 3) -> tuple[np.ndarray, np.ndarray
 SCENES = {"brighton": (brighton, (0.35, 0.5), (0.55, 0.85)), "autzen": (autzen, (0.55, 0.7), (0.7, 0.9))}
 
 
+def queries(name: str, n: int, seed: int) -> tuple[np.ndarray, np.ndarray, float, list[bx.Query]]:
+    """Scene ``name``'s orthophoto gray, DSM, pixel size and its first ``n`` queries (seeded:
+    the same queries for any ``n``)."""
+    load, frac, scale = SCENES[name]
+    gray, z, g = load()
+    src = bx.Scene(name, {"gray": gray}, g, np.zeros(gray.shape, np.uint8), g, lambda p: p, scale_range=scale)
+    rng = np.random.default_rng(seed)
+    return gray, z, g, [bx.make_query(src, rng, i, frac=float(rng.uniform(*frac))) for i in range(n)]
+
+
 def _blank(img: np.ndarray, q: bx.Query, pad: int = 10) -> np.ndarray:
     """``img`` with the query's footprint (its truth points' hull, dilated by ``pad`` px) set to
     nodata."""
@@ -181,13 +191,8 @@ def main() -> None:
     a = ap.parse_args()
     rows = []
     for name in [n for n in a.scenes.split(",") if n]:
-        load, frac, scale = SCENES[name]
-        gray, z, g = load()
-        src = bx.Scene(name, {"gray": gray}, g, np.zeros(gray.shape, np.uint8), g, lambda p: p)
-        src.scale_range = scale
-        rng = np.random.default_rng(a.seed)
-        for i in range(a.per_scene):
-            q = bx.make_query(src, rng, i, frac=float(rng.uniform(*frac)))
+        gray, z, g, qs = queries(name, a.per_scene, a.seed)
+        for i, q in enumerate(qs):
             half = "tuning" if i % 2 == 0 else "checking"
             ortho = _blank(bx._stretch(gray), q)
             cases = [("in_map", q, z)]

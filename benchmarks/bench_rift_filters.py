@@ -28,12 +28,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--repeats", type=int, default=3)
     a = ap.parse_args()
-    bx = be.bx
-    gray, z, g = be.brighton()
-    src = bx.Scene("brighton", {"gray": gray}, g, np.zeros(gray.shape, np.uint8), g, lambda p: p,
-                   scale_range=be.SCENES["brighton"][2])  # fmt: skip
-    rng = np.random.default_rng(11)
-    q = bx.make_query(src, rng, 0, frac=float(rng.uniform(*be.SCENES["brighton"][1])))
+    _, z, g, (q,) = be.queries("brighton", 1, 11)
     u8 = q.bands["gray"]
     # the true pose: query px -> map x, y (x = col g, y = -row g), from the truth grid
     Ht = np.linalg.lstsq(np.c_[q.truth, np.ones(len(q.truth))], q.truth_map * np.array([g, -g]), rcond=None)[0].T

@@ -27,11 +27,7 @@ def case(shared_data):
         pytest.skip("brighton absent")
     be = load("bench_elevation")
     bx = be.bx
-    gray, z, g = be.brighton()
-    src = bx.Scene("brighton", {"gray": gray}, g, np.zeros(gray.shape, np.uint8), g, lambda p: p,
-                   scale_range=be.SCENES["brighton"][2])  # fmt: skip
-    rng = np.random.default_rng(11)
-    q = bx.make_query(src, rng, 0, frac=float(rng.uniform(*be.SCENES["brighton"][1])))
+    gray, z, g, (q,) = be.queries("brighton", 1, 11)
     # the orthophoto blanked over the query's place: its sources cannot find it
     sc = bx.Scene("brighton_ortho_test", {}, g, be._blank(bx._stretch(gray), q), g, lambda p: p)
 
