@@ -19,6 +19,7 @@ def main(smk):
         smk.output.geolocation,
         smk.input.ortho,
         smk.params.cache_dir,
+        bool(smk.params.elevation),
     )
 
 

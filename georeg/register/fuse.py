@@ -534,13 +534,15 @@ def run_fuse_parts(
     out_geoloc: str,
     ortho: str | None = None,
     cache_dir: str | None = None,
+    elevation: bool = True,
 ) -> dict[str, Any]:
     """Rule fuse_parts: the other sources, fusion and the verifier's terms (``decide``); write
     geolocation.tif (all NaN when not found) and registration.json.
 
     ``ortho``: the orthophoto mosaic, read by the small-query sources and the orthophoto check;
     ``cache_dir``: where the sources keep what they compute from it for the next query
-    (``ortho_identity``).
+    (``ortho_identity``); ``elevation``: the map has elevation (``map.lidar`` or ``map.dem``; else
+    ``dsm`` is nodata), which the elevation source then reads.
     The query's location prior (band.json ``prior``) clips the map as in the search_part jobs."""
     import json
     from pathlib import Path
@@ -570,7 +572,7 @@ def run_fuse_parts(
         None if not ortho else ortho_window_reader(ortho),
         None if not ortho else level.read_ortho_level(ortho),
         None if not ortho else ortho_identity(ortho), cache_dir, ground_aspect(grid_path),
-        *((ortho_window_reader(dsm), ortho_identity(dsm)) if dsm and Path(dsm).exists() else ()),
+        *((ortho_window_reader(dsm), ortho_identity(dsm)) if elevation and dsm and Path(dsm).exists() else ()),
     )  # fmt: skip
     full = query_features(u8, (0, h), factors, view.source.features_conf)
     timings["fuse_features"] = time.perf_counter() - t1

@@ -7,6 +7,7 @@ REG_SEED = config["seed"] if config["register"].get("seed") is None else config[
 REG_INDEX_META = "results/index/map/meta.json"
 REG_GRID = "results/map/grid.json"
 REG_DSM = "results/map/mosaic/dsm.vrt"
+REG_HAS_ELEVATION = bool(config["map"].get("lidar") or config["map"].get("dem"))  # else the DSM is nodata
 
 
 rule query_band:
@@ -72,6 +73,7 @@ rule fuse_parts:
         register=config["register"],
         seed=REG_SEED,
         cache_dir="results/cache/register",  # map features the sources keep between queries
+        elevation=REG_HAS_ELEVATION,  # the elevation source reads the DSM
     log:
         "logs/register/fuse_parts/{name}.log",
     benchmark:
