@@ -72,6 +72,11 @@ DEFAULTS: dict[str, Any] = {
 MODES = ("off", "record", "reject")
 
 
+#: the sources whose own poses this check polishes with a floor of 1 (``rift.polish``: rift's,
+#: the learned source's and the elevation source's, the last against the DSM): rift's search
+#: with its record (``split.<name>``), which the report reads too
+POLISHED_SOURCES = ("rift", "learned", "elevation")
+
 def ortho_conf(reg_conf: dict[str, Any] | None) -> dict[str, Any]:
     """``register.ortho_check`` with defaults; a bad mode raises ValueError."""
     c = {**DEFAULTS, **((reg_conf or {}).get("ortho_check") or {})}
@@ -275,10 +280,9 @@ def apply(q_u8: np.ndarray, fused: dict[str, Any], read_window: Any,
         return fused, rec
     _, got = verify(band, H, img, c)
     rec.update(got)
-    # rift's, the learned and the elevation source's own poses are polished with a floor of 1
-    # (rift.polish; the elevation's against the DSM); a feature re-match guided by such a pose
-    # is a feature fit and meets the floor of feature fits
-    polished = fused.get("pose_source") in ("rift", "learned", "elevation")
+    # a feature re-match guided by a rift-family pose is a feature fit and meets the floor of
+    # feature fits
+    polished = fused.get("pose_source") in POLISHED_SOURCES
     rec["veto_gain"] = 0.0 if polished else float(c["veto_gain"])
     log.info("ortho check: %s, supported %.3f (x%.1f the moved hypotheses)",
              rec["outcome"], rec.get("supported", 0.0), rec.get("gain", 0.0))  # fmt: skip

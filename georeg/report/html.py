@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from georeg.io.atomic import write_text
+from georeg.register.ortho_check import POLISHED_SOURCES
 from georeg.report.frames_html import frames_section
 from georeg.report.html_parts import cell, fmt, png_data_uri, table, td
 
@@ -328,7 +329,7 @@ def sources_text(reg: Mapping[str, Any]) -> str | None:
     out = []
     for s in ran:
         t = f"{s.get('name')} ({s.get('candidates', 0)} tried{', accepted' if s.get('accepted') else ''})"
-        rift = (reg.get("split") or {}).get(s.get("name")) if s.get("name") in ("rift", "learned", "elevation") else None
+        rift = (reg.get("split") or {}).get(s.get("name")) if s.get("name") in POLISHED_SOURCES else None
         if rift:
             one = lambda v: "none" if v is None else f"{float(v):.1f}"  # noqa: E731
             t += (f": log10 NFA {one(rift.get('log10_nfa'))}, other rotations' best "
