@@ -77,6 +77,7 @@ MODES = ("off", "record", "reject")
 #: with its record (``split.<name>``), which the report reads too
 POLISHED_SOURCES = ("rift", "learned", "elevation")
 
+
 def ortho_conf(reg_conf: dict[str, Any] | None) -> dict[str, Any]:
     """``register.ortho_check`` with defaults; a bad mode raises ValueError."""
     c = {**DEFAULTS, **((reg_conf or {}).get("ortho_check") or {})}
