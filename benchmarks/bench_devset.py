@@ -521,6 +521,8 @@ METHODS: dict[str, dict[str, Any]] = {
     # outside query: at a seeded place of its map; bench_crossspectral.location_prior)
     "wf_rift_prior2": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": False}}, "bands": 1,
                        "prior": 2.0},
+    "wf_rift_prior2_refined": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": False}},
+                               "bands": 1, "prior": 2.0, "refine": {}},  # + the refinement stage
     # + the learned source (XFeat in rift's search, fuse.SOURCES after rift; session 27)
     "wf_learned": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": True}}, "bands": 1},
     "wf_learned_nogsd": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": True}}, "bands": 1,

@@ -790,3 +790,43 @@ def test_pooled_bands_are_searched_together():
     pts = np.array([[0, 0], [159, 0], [0, 159], [159, 159], [80, 80]], float)
     err = np.linalg.norm(matching.apply_h(r["H"], pts) - matching.apply_h(truth, pts), axis=1)
     assert err.max() < 2.0, err
+
+
+def test_weak_feature_fit_is_turned_to_the_footprint_correlation():
+    """A feature fit through a few inliers of one part (``fuse.turn_weak_fit``): a homography
+    through the true place but with a perspective the query does not have (scale changing 25 %
+    across it, > 8 map px off at the corners) is replaced by the turned similarity at its
+    centre, within 1.5 map px of the truth; the turn is recorded in the ortho check's record.
+    A fit with more inliers than ``ortho_check.max_inliers``, rift's own pose, and a map whose
+    pixels are not square on the ground are left alone."""
+    from georeg.register import fuse
+    from georeg.register.search import MapSource, MapView
+
+    m = _scene(5, 480)
+    q, truth = _query(m, (240.0, 230.0), 37.0, 160)
+    g = 2.0
+    to_map = np.array([[g, 0, g / 2], [0, -g, -g / 2], [0, 0, 1.0]])  # _box_reader's px -> x, y
+    c = np.array([[1, 0, 79.5], [0, 1, 79.5], [0, 0, 1.0]])
+    P = np.array([[1.0, 0, 0], [0, 1.0, 0], [0.0016, 0.0005, 1.0]])  # perspective about the centre
+    warped = to_map @ truth @ c @ P @ np.linalg.inv(c)
+    corners = np.array([[0, 0], [159, 0], [159, 159], [0, 159], [79.5, 79.5]], float)
+
+    def err(H: np.ndarray) -> float:  # map px
+        return float(np.linalg.norm(matching.apply_h(np.linalg.inv(to_map) @ H, corners)
+                                    - matching.apply_h(truth, corners), axis=1).max())  # fmt: skip
+
+    assert err(warped) > 8.0
+    src = MapSource(np.zeros((1, 2)), np.zeros((1, 128), np.float32), g)
+    view = MapView(src, _box_reader(m, g))
+    fused = {"status": "registered", "homography": warped.tolist(), "inliers": 20, "pose_source": "features"}
+    orec: dict = {"outcome": "agrees"}
+    out = fuse.turn_weak_fit(q, fused, view, {}, orec)
+    assert err(np.array(out["homography"])) < 1.5, (err(np.array(out["homography"])), orec["turn"])
+    assert orec["turn"]["score"] is not None
+    for f, v in (({**fused, "inliers": 31}, view), ({**fused, "pose_source": "rift"}, view),
+                 (fused, MapView(src, _box_reader(m, g), aspect=0.8))):  # fmt: skip
+        assert fuse.turn_weak_fit(q, f, v, {}, {"outcome": "agrees"}) is f
+    # the similarity at the centre keeps the fit's handedness and its image of the centre
+    S = fuse.centre_similarity(warped, 160, 160)
+    assert np.linalg.det(S[:2, :2]) < 0
+    assert np.allclose(matching.apply_h(S, corners[4:]), matching.apply_h(warped, corners[4:]))

@@ -468,6 +468,7 @@ def check_fused(
         timings["null_check"] = time.perf_counter() - t1
     t1 = time.perf_counter()
     fused, orec = ortho_check.apply(q.u8, fused, view.read_window, conf)
+    fused = turn_weak_fit(q.u8, fused, view, conf, orec)
     if orec is not None and orec.get("seconds") is not None:
         timings["ortho_check"] = time.perf_counter() - t1
     H = None if fused.get("homography") is None else np.array(fused["homography"])
@@ -478,6 +479,44 @@ def check_fused(
         fused = lidar_check.veto(fused, lidar)
     return fused, {"split": split, "parts": parts, "null_check": nrec, "ortho_check": orec,
                    "lidar_check": lidar, "timings_s": timings}  # fmt: skip
+
+
+def turn_weak_fit(u8: np.ndarray, fused: dict[str, Any], view: MapView, conf: dict[str, Any],
+                  orec: dict[str, Any] | None) -> dict[str, Any]:
+    """A feature fit the orthophoto check was due for (few inliers, ``ortho_check.max_inliers``)
+    turned as rift's poses are (``rift.turned``, ``rift.turn_deg``; ``orec["turn"]``): the
+    similarity the fit makes at the footprint's centre moved to the peak of the whole
+    footprint's CFOG correlation with the orthophoto. A fit through a few inliers of one part
+    extrapolates over the rest (SRIF optical-optical 131: a 24-inlier homography whose scale
+    changes 1.38-1.77 across the query, 16 px off -> 11.6 px; 195: 8.5 -> 1.6 px; session 44).
+    Rift's own poses are turned already; a map whose pixels are not square on the ground
+    (``MapView.aspect``) is left alone (a similarity in its units is not one on the ground)."""
+    deg = float(rift.rift_conf(conf.get("rift"))["turn_deg"])
+    if (orec is None or fused.get("homography") is None or deg <= 0 or view.read_window is None
+            or fused.get("pose_source") in ortho_check.POLISHED_SOURCES or abs(view.aspect - 1.0) > 1e-6
+            or not ortho_check.due(fused, ortho_check.ortho_conf(conf))):  # fmt: skip
+        return fused
+    band = u8[0] if u8.ndim == 3 else u8
+    h, w = band.shape
+    S = centre_similarity(np.asarray(fused["homography"], float), w, h)
+    H2, orec["turn"] = rift.turned(band, S, view.read_window, conf, deg, found=S)
+    if orec["turn"] is None or orec["turn"].get("score") is None:
+        return fused
+    return {**fused, "homography": (H2 / H2[2, 2]).tolist()}
+
+
+def centre_similarity(H: np.ndarray, w: int, h: int) -> np.ndarray:
+    """The similarity (handedness kept) nearest to homography ``H``'s local linear map at the
+    centre of a ``w`` x ``h`` image, through ``H``'s image of that centre."""
+    c = np.array([(w - 1) / 2, (h - 1) / 2, 1.0])
+    d = float(H[2] @ c)
+    p = (H[:2] @ c) / d
+    J = (H[:2, :2] - np.outer(p, H[2, :2])) / d  # d(H x) / dx at the centre
+    U, _, Vt = np.linalg.svd(J)
+    S = np.eye(3)
+    S[:2, :2] = (U @ Vt) * np.sqrt(abs(np.linalg.det(J)))
+    S[:2, 2] = p - S[:2, :2] @ c[:2]
+    return S
 
 
 def register_query(

@@ -20,7 +20,8 @@ refitted to these tie points (:func:`refit`: :func:`georeg.register.densefit.den
 taken when its blocked CV residual is lower); the refit is checked, and when it does not agree
 the feature fit is checked too (:func:`verify`). The check is a term of the verifier's record:
 it never changes the fit (a refit that replaced the feature fit was measured and not kept,
-docs/BENCHMARKS.md "Dense check of accepted fits").
+docs/BENCHMARKS.md "Dense check of accepted fits"); a fit it keeps is then turned by the fuse
+step (``fuse.turn_weak_fit``, recorded here as ``turn``).
 
 Outcome (``ortho_check.outcome`` in registration.json):
 
