@@ -796,7 +796,8 @@ def test_weak_feature_fit_is_turned_to_the_footprint_correlation():
     """A feature fit through a few inliers of one part (``fuse.turn_weak_fit``): a homography
     through the true place but with a perspective the query does not have (scale changing 25 %
     across it, > 8 map px off at the corners) is replaced by the turned similarity at its
-    centre, within 1.5 map px of the truth; the turn is recorded in the ortho check's record.
+    centre, within 1.5 map px of the truth; the turn is recorded in the ortho check's record; the
+    true pose stays within half a px.
     A fit with more inliers than ``ortho_check.max_inliers``, rift's own pose, and a map whose
     pixels are not square on the ground are left alone."""
     from georeg.register import fuse
@@ -823,6 +824,9 @@ def test_weak_feature_fit_is_turned_to_the_footprint_correlation():
     out = fuse.turn_weak_fit(q, fused, view, {}, orec)
     assert err(np.array(out["homography"])) < 1.5, (err(np.array(out["homography"])), orec["turn"])
     assert orec["turn"]["score"] is not None
+    # the true pose stays where it is
+    true_fit = {**fused, "homography": (to_map @ truth).tolist()}
+    assert err(np.array(fuse.turn_weak_fit(q, true_fit, view, {}, {"outcome": "agrees"})["homography"])) < 0.5
     for f, v in (({**fused, "inliers": 31}, view), ({**fused, "pose_source": "rift"}, view),
                  (fused, MapView(src, _box_reader(m, g), aspect=0.8))):  # fmt: skip
         assert fuse.turn_weak_fit(q, f, v, {}, {"outcome": "agrees"}) is f
