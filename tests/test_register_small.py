@@ -341,7 +341,8 @@ def test_null_check_turns_a_distorted_tiny_feature_fit_into_the_scans_true_place
     """A tiny query of a tuning city (``--set tiny``, 79 px) whose 12-inlier feature fit is
     7.5 map px off at its centre (a false accept before the check): the whole-map CFOG scan's
     significant peak is 5 correlation px away, so the workflow default replaces the fit and the
-    query ends within the success bound of the truth."""
+    query ends within the success bound of the truth (without the check, the turn of weak
+    feature fits does too)."""
     import cv2
 
     bc = _bench()
@@ -354,5 +355,10 @@ def test_null_check_turns_a_distorted_tiny_feature_fit_into_the_scans_true_place
     assert res["null_check"] == "conflict"
     j = bc.judge(q, sc, res)
     assert j["outcome"] == "success" and j["error_px"] < 3.0, j
-    before = bc.run_method(q, sc, bc.METHODS["wf_nocheck"], 11 + qi)
-    assert bc.judge(q, sc, before)["outcome"] == "false_accept"  # what the check corrects
+    # what the check corrects: without it, and without the turn of weak feature fits
+    # (``fuse.turn_weak_fit``, ``rift.turn_deg``), the fit is a false accept; the turn alone
+    # brings it within the success bound too
+    plain = {"pipeline": {"small": {"null_test": {"check": False}}, "rift": {"turn_deg": 0}}, "bands": "auto"}
+    assert bc.judge(q, sc, bc.run_method(q, sc, plain, 11 + qi))["outcome"] == "false_accept"
+    turned = bc.judge(q, sc, bc.run_method(q, sc, bc.METHODS["wf_nocheck"], 11 + qi))
+    assert turned["outcome"] == "success", turned
