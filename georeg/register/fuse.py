@@ -508,14 +508,12 @@ def turn_weak_fit(u8: np.ndarray, fused: dict[str, Any], view: MapView, conf: di
 def centre_similarity(H: np.ndarray, w: int, h: int) -> np.ndarray:
     """The similarity (handedness kept) nearest to homography ``H``'s local linear map at the
     centre of a ``w`` x ``h`` image, through ``H``'s image of that centre."""
-    c = np.array([(w - 1) / 2, (h - 1) / 2, 1.0])
-    d = float(H[2] @ c)
-    p = (H[:2] @ c) / d
-    J = (H[:2, :2] - np.outer(p, H[2, :2])) / d  # d(H x) / dx at the centre
+    c = np.array([(w - 1) / 2, (h - 1) / 2])
+    J = acceptance.jacobian(H, c)[0]
     U, _, Vt = np.linalg.svd(J)
     S = np.eye(3)
     S[:2, :2] = (U @ Vt) * np.sqrt(abs(np.linalg.det(J)))
-    S[:2, 2] = p - S[:2, :2] @ c[:2]
+    S[:2, 2] = matching.apply_h(H, c[None])[0] - S[:2, :2] @ c
     return S
 
 
