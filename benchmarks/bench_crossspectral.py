@@ -593,6 +593,7 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int, read_
         "second_pass": res.get("second_pass"),
         "rift": split.get("rift"),
         "learned": split.get("learned"),
+        "cfog_peaks": split.get("cfog_peaks"),
         "pose_source": res.get("pose_source"),
         "whole": split.get("whole_query_searched"),
         "features": split.get("query_features"),
@@ -917,6 +918,8 @@ def main(argv: list[str] | None = None) -> int:
                     "to spread one run over processes")  # fmt: skip
     ap.add_argument("--from", dest="first", type=int, default=0,
                     help="skip the queries before this index")
+    ap.add_argument("--only", default="",
+                    help="only these queries (comma-separated whole names; a rerun of a subset)")
     ap.add_argument("--positives-only", action="store_true",
                     help="skip the unrelated pairs (for changes that cannot alter a decision)")
     ap.add_argument("--content-truth", action="store_true",
@@ -940,6 +943,9 @@ def main(argv: list[str] | None = None) -> int:
         load_content_truth(scenes, ROOT / "results" / "benchmark" / "content_truth.json")
     if a.positives_only:
         queries = [q for q in queries if q.truth is not None]
+    if a.only:
+        keep = set(a.only.split(","))
+        queries = [q for q in queries if q.name in keep]
     if a.half != "both" and a.set in ("protocol", "whole"):
         queries = [q for q in queries if half_of(by[q.scene].city) == a.half]
     methods = a.methods.split(",")
@@ -964,7 +970,7 @@ def main(argv: list[str] | None = None) -> int:
                    "global_fit_reason": res.get("global_fit_reason"),
                    "ortho": res.get("ortho"), "ortho_gain": res.get("ortho_gain"), "rift": res.get("rift"),
                    "null_check": res.get("null_check"), "pose_source": res.get("pose_source"),
-                   "learned": res.get("learned")}  # fmt: skip
+                   "learned": res.get("learned"), "cfog_peaks": res.get("cfog_peaks")}  # fmt: skip
             rows[name].append(rec)
             if a.v:
                 e = ("-" if j["error_px"] is None

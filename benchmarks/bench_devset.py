@@ -589,6 +589,15 @@ def _rift_fields(res: dict[str, Any]) -> dict[str, Any]:
     return {k: r.get(k) for k in keys}
 
 
+def _peaks_fields(r: dict[str, Any] | None) -> dict[str, Any] | None:
+    """The cfog_peaks source's record in short: accepted peak, each peak's dense log10 NFA."""
+    if not r:
+        return None
+    return {"accepted": r.get("accepted"), "peak": r.get("peak"), "tests": r.get("tests"),
+            "log10_nfa": [p["log10_nfa"] for p in r.get("peaks") or []],
+            "supported": [p["supported"] for p in r.get("peaks") or []]}  # fmt: skip
+
+
 def run(q: bx.Query, sc: bx.Scene, name: str, seed: int) -> dict[str, Any]:
     spec = METHODS[name]
     if "rift" in spec:
@@ -755,6 +764,7 @@ def main(argv: list[str] | None = None) -> int:
                    "truth_audit": getattr(q, "truth_audit", None),
                    **_rift_fields(res), "ortho_gain": res.get("ortho_gain"),
                    "second_pass": res.get("second_pass"),
+                   "cfog_peaks": _peaks_fields(res.get("cfog_peaks")),
                    "sources": res.get("sources"), "pose_source": res.get("pose_source"),
                    "learned": {k: (res.get("learned") or {}).get(k) for k in
                                ("ran", "accepted", "log10_nfa", "null_log10_nfa", "inliers",

@@ -362,3 +362,94 @@ def test_null_check_turns_a_distorted_tiny_feature_fit_into_the_scans_true_place
     assert bc.judge(q, sc, bc.run_method(q, sc, plain, 11 + qi))["outcome"] == "false_accept"
     turned = bc.judge(q, sc, bc.run_method(q, sc, bc.METHODS["wf_nocheck"], 11 + qi))
     assert turned["outcome"] == "success", turned
+
+
+def _peaks_view(m: np.ndarray, g: float):
+    """A MapView of the uint8 field ``m`` (map x = col g, y = -row g) with a window reader."""
+    from georeg.register.search import MapSource, MapView
+
+    h, w = m.shape
+    src = MapSource(np.array([[0.0, 0.0], [(w - 1) * g, -(h - 1) * g]]),
+                    np.zeros((2, 128), np.float32), g)  # fmt: skip
+
+    def read(b):
+        c0, c1 = max(0, math.floor(b[0] / g)), min(w, math.ceil(b[2] / g) + 1)
+        r0, r1 = max(0, math.floor(-b[3] / g)), min(h, math.ceil(-b[1] / g) + 1)
+        win = m[r0:r1, c0:c1].astype(np.float32)
+        return win, np.array([[g, 0, c0 * g], [0, -g, -r0 * g], [0, 0, 1.0]])
+
+    return MapView(src, read)
+
+
+def test_peaks_source_registers_an_inverted_crop_and_refuses_an_unrelated_query():
+    """``small.peaks_source`` (source ``cfog_peaks``) on plain arrays: a 161 px crop of the map,
+    rotated, its contrast inverted and noisy (larger than the small-query sources take), is
+    accepted at its true place within a map pixel, its dense log10 NFA counting the tests
+    before it; a query cut from an unrelated field is refused with every peak checked; with
+    ``peaks: 0`` the source does not run, and on a map too large for one FFT neither."""
+    import cv2
+
+    from georeg.register.search import QueryInput
+    from georeg.register.small import peaks_source
+
+    g = 10.0
+    m = _field(7, (420, 420), sigma=2.5)
+    A = cv2.getRotationMatrix2D((260.0, 190.0), 33.0, 1.0)  # query centre = map px (260, 190)
+    A[:, 2] += (80.0 - 260.0, 80.0 - 190.0)
+    rng = np.random.default_rng(8)
+    q = cv2.warpAffine(m.astype(np.float32), A, (161, 161), flags=cv2.INTER_LINEAR)
+    q = np.clip(256.0 - q + rng.normal(0, 30.0, q.shape), 1, 255).astype(np.uint8)
+    view = _peaks_view(m, g)
+    conf: dict = {}
+    parts, rec = peaks_source(QueryInput(q, None, g, [1.0], 0, tests_before=50), view, [], conf)
+    assert rec["ran"] and rec["accepted"] and rec["tests"] == 50 + rec["candidates"], rec
+    assert len(parts) == 1 and parts[0]["method"] == "cfog_peaks"
+    c = matching.apply_h(np.array(parts[0]["homography"]), np.array([[80.0, 80.0]]))[0]
+    assert np.hypot(c[0] / g - 260.0, -c[1] / g - 190.0) < 1.0
+    assert parts[0]["log10_nfa"] < -3.0
+    other = _field(99, (161, 161), sigma=2.5)
+    parts, rec = peaks_source(QueryInput(other, None, g, [1.0], 0, tests_before=50), view, [], conf)
+    assert rec["ran"] and not rec["accepted"] and parts == [], rec
+    assert len(rec["peaks"]) == rec["candidates"] == 10
+    assert min(p["log10_nfa"] for p in rec["peaks"] if p["log10_nfa"] is not None) > -3.0
+    off = {"small": {"null_test": {"peaks": 0}}}
+    assert not peaks_source(QueryInput(q, None, g, [1.0]), view, [], off)[1]["ran"]
+    big = {"small": {"null_test": {"max_map_px": 1000}}}
+    parts, rec = peaks_source(QueryInput(q, None, g, [1.0]), view, [], big)
+    assert not rec["ran"] and "one FFT" in rec["reason"]
+
+
+@pytest.mark.skipif(not (DATA / "landsat_pucallpa" / "2000.tif").exists(), reason="Landsat Pucallpa absent")
+def test_peaks_source_registers_a_cross_date_crop_the_features_miss_and_not_its_blanked_map():
+    """Landsat Pucallpa (``bench_devset``, seed 11, checking half): the 2005 SWIR crop 1 on the
+    2000 red/green map, which the feature search and rift do not register (session 45's record):
+    one of the CFOG correlation's best places holds 28 % of the tie points against at most 8 %
+    elsewhere and passes the dense count over the workflow's 74 tests within 2 map px of the
+    truth; on the same map with the crop's place blanked no peak does."""
+    import cv2
+
+    bd = benchmark_module.load("bench_devset")
+    bx = _bench()
+    from georeg.register.search import MapSource, MapView, QueryInput
+    from georeg.register.small import peaks_source
+
+    cv2.setNumThreads(1)
+    scenes, queries = bd.build_pucallpa(11)
+    by = {s.name: s for s in scenes}
+    out = {}
+    for name in ("puc_2005_on_2000_1_1.6um", "puc_2005_on_2000_1_1.6um_blanked"):
+        q = next(x for x in queries if x.name == name)
+        sc = by[q.map_scene]
+        g = sc.map_gsd
+        h, w = sc.map_gray.shape
+        src = MapSource(np.array([[0.0, 0.0], [(w - 1) * g, -(h - 1) * g]]),
+                        np.zeros((2, 128), np.float32), g)  # fmt: skip
+        qi = QueryInput(next(iter(q.bands.values())), None, q.gsd, [1.0], 0, tests_before=64)
+        parts, rec = peaks_source(qi, MapView(src, bx.plain_window_reader(sc)), [], {})
+        H = np.array(parts[0]["homography"]) if parts else None
+        out[name] = (rec, bx.judge(q, sc, {"accepted": bool(parts), "H": H}))
+    rec, j = out["puc_2005_on_2000_1_1.6um"]
+    assert rec["accepted"] and j["outcome"] == "success" and j["error_px"] < 2.0, (rec, j)
+    assert rec["tests"] == 74 and rec["peaks"][rec["peak"]]["log10_nfa"] < -3.0
+    rec, j = out["puc_2005_on_2000_1_1.6um_blanked"]
+    assert rec["ran"] and not rec["accepted"] and j["outcome"] == "rejected", rec

@@ -303,6 +303,7 @@ SOURCES: tuple[tuple[str, Source], ...] = (
     ("rift", rift.source),
     ("learned", rift.learned_source),
     ("elevation", rift.elevation_source),
+    ("cfog_peaks", small.peaks_source),
 )
 
 
@@ -398,6 +399,8 @@ def run_sources(
         split["learned"] = recs["learned"]
     if (recs.get("elevation") or {}).get("ran"):
         split["elevation"] = recs["elevation"]
+    if (recs.get("cfog_peaks") or {}).get("ran"):
+        split["cfog_peaks"] = recs["cfog_peaks"]
     split["sources_by_name"] = recs
     return parts, split, ran, timings
 

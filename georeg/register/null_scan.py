@@ -50,6 +50,7 @@ NULL_DEFAULTS: dict[str, Any] = {
     "fine_range_deg": 5.0,
     "check": True,  # a small query's feature fit checked by the scan (small.null_check)
     "conflict_px": 3.0,  # ... replaced when the significant peak is this far (correlation px)
+    "peaks": 10,  # nothing accepted: the scan's best places checked densely (small.peaks_source)
 }
 
 
@@ -102,6 +103,42 @@ def scan(
     if r is None:
         return None
     return {"S": sf.to_window(kr, int(pr), int(pc)), "angle_deg": float(sf.angles[kr]), **r}
+
+
+def peaks(
+    q_u8: np.ndarray,
+    factor: float,
+    m_u8: np.ndarray,
+    n: int,
+    step_deg: float = 10.0,
+    max_side: int = 96,
+    block_px: int = 8,
+) -> list[tuple[np.ndarray, float, float]]:
+    """The ``n`` best places of the query (uint8, 0 = nodata; ``factor`` = query GSD / map GSD)
+    in the map ``m_u8`` by its CFOG correlation: the maxima of ``block_px`` blocks of the surface
+    (best rotation per offset), best first, none within 1.5 blocks of a better one. Returns
+    (S: 3 x 3 similarity query px -> map px of ``m_u8``, angle_deg, score) each."""
+    sf = correlation_surface(q_u8, factor, m_u8, step_deg, max_side)
+    if sf is None:
+        return []
+    surf = sf.scores.max(axis=0)
+    vals, br, bc = block_maxima(np.where(np.isfinite(surf), surf, -np.inf), block_px)
+    out: list[tuple[np.ndarray, float, float]] = []
+    kept: list[tuple[float, float]] = []
+    for i in np.argsort(vals)[::-1]:
+        if len(out) >= n or not np.isfinite(vals[i]):
+            break
+        if any((br[i] - r) ** 2 + (bc[i] - c) ** 2 < (1.5 * block_px) ** 2 for r, c in kept):
+            continue
+        kept.append((br[i], bc[i]))
+        # the block's own maximum, not its centre
+        r0, c0 = int(br[i] - (block_px - 1) / 2), int(bc[i] - (block_px - 1) / 2)
+        blk = surf[r0 : r0 + block_px, c0 : c0 + block_px]
+        dy, dx = np.unravel_index(int(np.argmax(np.where(np.isfinite(blk), blk, -np.inf))), blk.shape)
+        pr, pc = r0 + int(dy), c0 + int(dx)
+        k = int(np.argmax(sf.scores[:, pr, pc]))
+        out.append((sf.to_window(k, pr, pc), float(sf.angles[k]), float(vals[i])))
+    return out
 
 
 def top_spacing(

@@ -105,13 +105,19 @@ def _support(qf: np.ndarray, qm: np.ndarray, rendered: np.ndarray, pts: np.ndarr
 
 
 def check(
-    q_u8: np.ndarray, H: np.ndarray, ortho: MapImage, conf: dict[str, Any] | None = None
+    q_u8: np.ndarray,
+    H: np.ndarray,
+    ortho: MapImage,
+    conf: dict[str, Any] | None = None,
+    moved: bool = True,
 ) -> dict[str, Any]:
     """Tie points of the query against the orthophoto at H and at moved hypotheses.
 
     ``q_u8``: the query band (uint8, 0 = nodata); ``H``: 3 x 3, query pixel centre (col, row) ->
     map (x, y); ``ortho``: the orthophoto (gray, NaN = nodata) around the footprint;
-    ``conf``: :data:`DEFAULTS` overrides. Returns the record written to registration.json.
+    ``conf``: :data:`DEFAULTS` overrides; ``moved`` False: the supported fraction at H only
+    (outcome ``unmoved``, a screen: the moved hypotheses cost four times as much). Returns the
+    record written to registration.json.
     """
     t0 = time.perf_counter()
     c = {**DEFAULTS, **(conf or {})}
@@ -137,6 +143,9 @@ def check(
     if at_h["n"] < int(c["min_points"]):
         rec.update(reason=f"{at_h['n']} measurable tie points < min_points {c['min_points']}",
                    seconds=time.perf_counter() - t0)  # fmt: skip
+        return rec
+    if not moved:
+        rec.update(outcome="unmoved", supported=at_h["support"], seconds=time.perf_counter() - t0)
         return rec
     d = float(c["null_shift"]) * float(c["search_px"])
     null = [_support(qf, qm, render(dx, dy), pts, c)["support"]

@@ -379,6 +379,32 @@ def null_source(
     return parts, rec
 
 
+def whole_map(u8: np.ndarray, q_gsd: float, source: MapSource, sc: dict[str, Any],
+              nc: dict[str, Any], read_window: Any) -> tuple[tuple[float, ...], Any, float]:  # fmt: skip
+    """The map's bounds grown by half the query, and the orthophoto over them read whole
+    (gray, NaN = nodata; 3 x 3 pixel centre -> map) with the query's GSD over its pixel size,
+    when the correlation (the query shrunk to ``max_side`` px) sees at most
+    ``null_test.max_map_px`` px of it; else None (too large for one FFT) or "no orthophoto"."""
+    h, w = u8.shape[-2:]
+    b = source.bounds
+    pad = 0.5 * math.hypot(w, h) * float(q_gsd)
+    b = (b[0] - pad, b[1] - pad, b[2] + pad, b[3] + pad)
+    # the map as the correlation sees it: the query shrunk to max_side px
+    per_m = min(1.0 / source.gsd_m, float(sc["max_side"]) / (max(h, w) * float(q_gsd)))
+    est = (b[2] - b[0]) * (b[3] - b[1]) * per_m**2
+    if est > float(nc["max_map_px"]):
+        return b, None, 0.0
+    got = read_window(b)
+    if got is None:
+        return b, "no orthophoto", 0.0
+    gray, A = got
+    factor = float(q_gsd) / float(np.sqrt(abs(np.linalg.det(A[:2, :2]))))
+    est = gray.size * min(1.0, float(sc["max_side"]) / (max(h, w) * factor)) ** 2
+    if est > float(nc["max_map_px"]):  # the orthophoto is finer than the features
+        return b, None, 0.0
+    return b, got, factor
+
+
 def null_register(
     u8: np.ndarray,
     q_gsd: float,
@@ -405,22 +431,9 @@ def null_register(
     rec: dict[str, Any] = {"method": "small_cfog_null", "accepted": False, "homography": None,
                            "inliers": 0, "matches": 0, "statistic": "CFOG peak score, top spacing",
                            "block_px": int(nc["block_px"])}  # fmt: skip
-    b = source.bounds
-    pad = 0.5 * math.hypot(w, h) * float(q_gsd)
-    b = (b[0] - pad, b[1] - pad, b[2] + pad, b[3] + pad)
-    # the map as the correlation sees it: the query shrunk to max_side px
-    per_m = min(1.0 / source.gsd_m, float(sc["max_side"]) / (max(h, w) * float(q_gsd)))
-    est = (b[2] - b[0]) * (b[3] - b[1]) * per_m**2
+    b, got, factor = whole_map(u8, q_gsd, source, sc, nc, read_window)
     q0 = u8 if u8.ndim == 2 else u8[0]
-    got = None if est > float(nc["max_map_px"]) else read_window(b)
-    if got is not None:
-        gray, A = got
-        m_px = float(np.sqrt(abs(np.linalg.det(A[:2, :2]))))
-        factor = float(q_gsd) / m_px
-        est = gray.size * min(1.0, float(sc["max_side"]) / (max(h, w) * factor)) ** 2
-        if est > float(nc["max_map_px"]):  # the orthophoto is finer than the features
-            got = gray = None
-    elif est <= float(nc["max_map_px"]):
+    if got == "no orthophoto":
         rec.update(reason="no orthophoto", seconds=time.perf_counter() - t0)
         return rec
     if got is None:  # larger than one FFT: tile by tile (null_scan.tiled_scan), up to max_tiled_map_px
@@ -438,6 +451,7 @@ def null_register(
         A, m_u8, factor = r.pop("A"), r.pop("m_u8"), r.pop("factor")
     else:
         rec["scan"] = "whole"
+        gray, A = got
         m_u8 = window_u8(gray)
         r = scan(q0, factor, m_u8, float(sc["step_deg"]), int(sc["max_side"]),
                  int(nc["block_px"]), float(nc["exclude_px"]), int(nc["tail_k"]))  # fmt: skip
@@ -460,6 +474,105 @@ def null_register(
         reasons += plaus.get("reasons", [])
     rec.update(accepted=not reasons, reason="; ".join(reasons), seconds=time.perf_counter() - t0)
     return rec
+
+
+def peaks_source(
+    q: QueryInput, view: MapView, parts: list[dict[str, Any]], conf: dict[str, Any]
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Source ``cfog_peaks`` (``register.small.null_test.peaks``), when no other source was
+    accepted, on a query of any size: the ``peaks`` best places of the query's CFOG correlation
+    over the whole map (``null_scan.peaks``), each refined (``null_scan.fine_pose``) and checked
+    densely against the orthophoto (``ortho_check.check``: the supported fraction of the tie
+    points at the pose; for the ``MOVED_PEAKS`` best supported, at four moved poses too). A pose
+    is judged by the a-contrario count of its
+    supported tie points (``dense_nfa``) over every test of the search (``q.tests_before``) and
+    these peaks; the lowest below ``log_nfa_max`` that is plausible becomes one more (whole-query)
+    part. The rifts' features do not match across decades of land change where the structure
+    of the whole footprint still does (Landsat Pucallpa, session 45). Returns the parts and the
+    record."""
+    from rasterio.transform import Affine
+
+    from georeg.register.dense import window_u8
+    from georeg.register.null_scan import fine_pose, peaks
+    from georeg.register.ortho_check import check, ortho_conf
+    from georeg.register.tiepoints import MapImage
+
+    sc = small_conf(conf)
+    nc = null_conf(sc)
+    n = int(nc["peaks"])
+    if not n or not nc["enabled"]:
+        return parts, {"ran": False, "reason": "disabled"}
+    if not q.gsd or view.read_window is None:
+        return parts, {"ran": False, "reason": "no query GSD or no orthophoto"}
+    t0 = time.perf_counter()
+    u8 = q.primary
+    h, w = u8.shape
+    _, got, factor = whole_map(u8, q.gsd, view.source, sc, nc, view.read_window)
+    if not isinstance(got, tuple):
+        return parts, {"ran": False, "reason": got or "map too large for one FFT (null_test.max_map_px)"}
+    gray, A = got
+    m_u8 = window_u8(gray)
+    T = np.asarray(A, float) @ np.array([[1, 0, -0.5], [0, 1, -0.5], [0, 0, 1.0]])
+    ortho = MapImage(np.asarray(gray, np.float32), Affine(*T[:2].ravel()))
+    oc = ortho_conf(conf)
+    tests = int(q.tests_before) + n
+    cands = []
+    for S0, ang0, score in peaks(u8, factor, m_u8, n, float(sc["step_deg"]), int(sc["max_side"])):
+        S, ang, fine = fine_pose(u8, factor, m_u8, S0, ang0, float(nc["fine_step_deg"]),
+                                 float(nc["fine_range_deg"]), box_px=6.0)  # fmt: skip
+        H = A @ S
+        ck = check(u8, H, ortho, oc, moved=False)
+        cands.append({"H": H, "angle_deg": ang, "score": score, "fine_score": fine,
+                      "supported": ck.get("supported"), "log10_nfa": None})  # fmt: skip
+    # the moved poses of the best supported only: the count stays every peak
+    for c in sorted(cands, key=lambda c: -(c["supported"] or 0.0))[:MOVED_PEAKS]:
+        ck = check(u8, c["H"], ortho, oc)
+        c.update(gain=ck.get("gain"), tie_points=ck.get("tie_points"), log10_nfa=dense_nfa(ck, tests))
+    rec: dict[str, Any] = {"ran": True, "candidates": n, "tests": tests,
+                           "peaks": [{k: v for k, v in c.items() if k != "H"} for c in cands]}  # fmt: skip
+    ok = [c["log10_nfa"] is not None and c["log10_nfa"] < float(nc["log_nfa_max"])
+          and acceptance.plausibility(c["H"], w, h, q.gsd, conf.get("acceptance") or {})["ok"]
+          for c in cands]  # fmt: skip
+    good = [i for i in range(len(cands)) if ok[i]]
+    i = min(good, key=lambda j: cands[j]["log10_nfa"]) if good else -1
+    rec.update(accepted=i >= 0, seconds=round(time.perf_counter() - t0, 3))
+    if i < 0:
+        rec["reason"] = (f"no peak's dense log10 NFA < {nc['log_nfa_max']} (lowest "
+                         f"{min((c['log10_nfa'] for c in cands if c['log10_nfa'] is not None), default=math.nan):.1f})")  # fmt: skip
+        return parts, rec
+    best = cands[i]
+    log.info("cfog peaks: peak %d accepted, supported %.2f, log10 NFA %.1f", i,
+             best["supported"], best["log10_nfa"])  # fmt: skip
+    rec["peak"] = i
+    part = {"accepted": True, "method": "cfog_peaks", "homography": best["H"].tolist(),
+            "log10_nfa": best["log10_nfa"], "inliers": 0, "matches": 0, "part": len(parts),
+            "rows": [0, h], "whole_query": True, "candidates_tried": n, "candidates": []}  # fmt: skip
+    return [*parts, part], rec
+
+
+#: the peaks whose moved poses are measured (the best supported at their own pose)
+MOVED_PEAKS = 3
+
+#: tie-point windows (``ortho_check.window_px``) overlap their neighbours on a grid of half
+#: their side, so about this many tie points share one window's pixels: the count of
+#: independent tie points is the measured one over it
+TIE_OVERLAP = 4.0
+
+
+def dense_nfa(ck: dict[str, Any], tests: int) -> float | None:
+    """log10 NFA of a pose's dense check (``ortho_check.check``): ``tests`` x the binomial tail
+    of its supported tie points, counted as independent over ``TIE_OVERLAP``, at the rate the
+    best moved pose reaches (at least one tie point); None when the check was skipped."""
+    from scipy.stats import binom
+
+    n = int(ck.get("tie_points") or 0)
+    if ck.get("supported_moved") is None or n == 0:
+        return None
+    p0 = max(max(ck.get("supported_moved") or [0.0]), 1.0 / n)
+    k = int(math.floor(float(ck["supported"]) * n / TIE_OVERLAP))
+    ne = int(n // TIE_OVERLAP)
+    tail = float(binom.logsf(k - 1, ne, min(p0, 1.0))) / math.log(10) if k > 0 else 0.0
+    return math.log10(max(int(tests), 1)) + tail
 
 
 def null_check(
