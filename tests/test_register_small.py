@@ -453,3 +453,20 @@ def test_peaks_source_registers_a_cross_date_crop_the_features_miss_and_not_its_
     assert rec["tests"] == 74 and rec["peaks"][rec["peak"]]["log10_nfa"] < -3.0
     rec, j = out["puc_2005_on_2000_1_1.6um_blanked"]
     assert rec["ran"] and not rec["accepted"] and j["outcome"] == "rejected", rec
+
+
+def test_dense_nfa_counts_a_quarter_of_the_tie_points_and_stays_finite():
+    """``small.dense_nfa``: chance support (at the moved poses' rate) is not significant, a
+    clear excess is, the count of tests adds its decades, and a perfect match stays a finite
+    number (registration.json); a check without moved poses has no figure."""
+    from georeg.register.small import NFA_FLOOR, dense_nfa
+
+    chance = {"tie_points": 200, "supported": 0.08, "supported_moved": [0.06, 0.08, 0.05, 0.07]}
+    assert dense_nfa(chance, 10) > 0.0
+    clear = {**chance, "supported": 0.4}
+    assert dense_nfa(clear, 10) < -3.0
+    assert math.isclose(dense_nfa(clear, 1000) - dense_nfa(clear, 10), 2.0)
+    perfect = {"tie_points": 2000, "supported": 1.0, "supported_moved": [0.0] * 4}
+    v = dense_nfa(perfect, 10)
+    assert math.isfinite(v) and v == 1.0 + NFA_FLOOR
+    assert dense_nfa({"tie_points": 200, "supported": 0.4}, 10) is None

@@ -559,6 +559,10 @@ MOVED_PEAKS = 3
 TIE_OVERLAP = 4.0
 
 
+#: the lowest log10 tail ``dense_nfa`` reports (float underflow below)
+NFA_FLOOR = -300.0
+
+
 def dense_nfa(ck: dict[str, Any], tests: int) -> float | None:
     """log10 NFA of a pose's dense check (``ortho_check.check``): ``tests`` x the binomial tail
     of its supported tie points, counted as independent over ``TIE_OVERLAP``, at the rate the
@@ -572,7 +576,8 @@ def dense_nfa(ck: dict[str, Any], tests: int) -> float | None:
     k = int(math.floor(float(ck["supported"]) * n / TIE_OVERLAP))
     ne = int(n // TIE_OVERLAP)
     tail = float(binom.logsf(k - 1, ne, min(p0, 1.0))) / math.log(10) if k > 0 else 0.0
-    return math.log10(max(int(tests), 1)) + tail
+    # the tail underflows to -inf on a near-perfect match; registration.json keeps a number
+    return math.log10(max(int(tests), 1)) + max(tail, NFA_FLOOR)
 
 
 def null_check(
