@@ -511,6 +511,14 @@ def peaks_source(
     if not isinstance(got, tuple):
         return parts, {"ran": False, "reason": got or "map too large for one FFT (null_test.max_map_px)"}
     gray, A = got
+    # a query larger than PEAKS_SIDE_PX at the map's pixel size: the map read coarser (the
+    # cost of the refinement and the tie points grows with the query's area; the fuse step's
+    # checks and turn work at full resolution after)
+    r = min(1.0, PEAKS_SIDE_PX / (max(h, w) * factor))
+    if r < 1.0:
+        o = 0.5 / r - 0.5  # new pixel centre c -> old (c + 0.5) / r - 0.5
+        A = np.asarray(A, float) @ np.array([[1 / r, 0, o], [0, 1 / r, o], [0, 0, 1.0]])
+        gray, factor = _coarser(gray, r), factor * r
     m_u8 = window_u8(gray)
     T = np.asarray(A, float) @ np.array([[1, 0, -0.5], [0, 1, -0.5], [0, 0, 1.0]])
     ortho = MapImage(np.asarray(gray, np.float32), Affine(*T[:2].ravel()))
@@ -548,6 +556,23 @@ def peaks_source(
             "log10_nfa": best["log10_nfa"], "inliers": 0, "matches": 0, "part": len(parts),
             "rows": [0, h], "whole_query": True, "candidates_tried": n, "candidates": []}  # fmt: skip
     return [*parts, part], rec
+
+
+#: ``peaks_source`` works with the query at most this many map pixels across (coarser maps)
+PEAKS_SIDE_PX = 256
+
+
+def _coarser(gray: np.ndarray, r: float) -> np.ndarray:
+    """``gray`` (NaN = nodata) resampled by ``r`` < 1 (area average; a pixel with any nodata
+    under it is nodata). Pixel centres: new (c + 0.5) / r - 0.5 = old c."""
+    import cv2
+
+    h, w = gray.shape
+    size = (max(1, round(w * r)), max(1, round(h * r)))
+    ok = np.isfinite(gray)
+    img = cv2.resize(np.where(ok, gray, 0).astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    val = cv2.resize(ok.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    return np.where(val > 0.99, img / np.maximum(val, 1e-6), np.nan).astype(np.float32)
 
 
 #: the peaks whose moved poses are measured (the best supported at their own pose)
