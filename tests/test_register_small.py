@@ -410,7 +410,7 @@ def test_peaks_source_registers_an_inverted_crop_and_refuses_an_unrelated_query(
     other = _field(99, (161, 161), sigma=2.5)
     parts, rec = peaks_source(QueryInput(other, None, g, [1.0], 0, tests_before=50), view, [], conf)
     assert rec["ran"] and not rec["accepted"] and parts == [], rec
-    assert len(rec["peaks"]) == rec["candidates"] == 10
+    assert len(rec["peaks"]) == rec["candidates"] == 5
     assert min(p["log10_nfa"] for p in rec["peaks"] if p["log10_nfa"] is not None) > -3.0
     off = {"small": {"null_test": {"peaks": 0}}}
     assert not peaks_source(QueryInput(q, None, g, [1.0]), view, [], off)[1]["ran"]
@@ -444,7 +444,7 @@ def test_peaks_source_registers_a_cross_date_crop_the_features_miss_and_not_its_
         h, w = sc.map_gray.shape
         src = MapSource(np.array([[0.0, 0.0], [(w - 1) * g, -(h - 1) * g]]),
                         np.zeros((2, 128), np.float32), g)  # fmt: skip
-        qi = QueryInput(next(iter(q.bands.values())), None, q.gsd, [1.0], 0, tests_before=64)
+        qi = QueryInput(next(iter(q.bands.values())), None, q.gsd, [1.0], 0, tests_before=69)
         parts, rec = peaks_source(qi, MapView(src, bx.plain_window_reader(sc)), [], {})
         H = np.array(parts[0]["homography"]) if parts else None
         out[name] = (rec, bx.judge(q, sc, {"accepted": bool(parts), "H": H}))

@@ -50,7 +50,7 @@ NULL_DEFAULTS: dict[str, Any] = {
     "fine_range_deg": 5.0,
     "check": True,  # a small query's feature fit checked by the scan (small.null_check)
     "conflict_px": 3.0,  # ... replaced when the significant peak is this far (correlation px)
-    "peaks": 10,  # nothing accepted: the scan's best places checked densely (small.peaks_source)
+    "peaks": 5,  # nothing accepted: the scan's best places checked densely (small.peaks_source)
 }
 
 
