@@ -500,7 +500,7 @@ def peaks_source(
     sc = small_conf(conf)
     nc = null_conf(sc)
     n = int(nc["peaks"])
-    if not n or not nc["enabled"]:
+    if not n or not nc["enabled"] or not sc["enabled"]:
         return parts, {"ran": False, "reason": "disabled"}
     if not q.gsd or view.read_window is None:
         return parts, {"ran": False, "reason": "no query GSD or no orthophoto"}
