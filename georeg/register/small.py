@@ -538,10 +538,9 @@ def peaks_source(
         c.update(gain=ck.get("gain"), tie_points=ck.get("tie_points"), log10_nfa=dense_nfa(ck, tests))
     rec: dict[str, Any] = {"ran": True, "candidates": n, "tests": tests,
                            "peaks": [{k: v for k, v in c.items() if k != "H"} for c in cands]}  # fmt: skip
-    ok = [c["log10_nfa"] is not None and c["log10_nfa"] < float(nc["log_nfa_max"])
-          and acceptance.plausibility(c["H"], w, h, q.gsd, conf.get("acceptance") or {})["ok"]
-          for c in cands]  # fmt: skip
-    good = [i for i in range(len(cands)) if ok[i]]
+    good = [i for i, c in enumerate(cands)
+            if c["log10_nfa"] is not None and c["log10_nfa"] < float(nc["log_nfa_max"])
+            and acceptance.plausibility(c["H"], w, h, q.gsd, conf.get("acceptance") or {})["ok"]]  # fmt: skip
     i = min(good, key=lambda j: cands[j]["log10_nfa"]) if good else -1
     rec.update(accepted=i >= 0, seconds=round(time.perf_counter() - t0, 3))
     if i < 0:
