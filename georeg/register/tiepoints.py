@@ -9,6 +9,7 @@ channels (``cfog``), a map window (``MapImage``, ``read_map_gray``), a window gr
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -171,23 +172,30 @@ def window_centroid(pts: np.ndarray, width: int, height: int, window: int) -> np
     return out
 
 
-def _quad_peak(s: np.ndarray) -> tuple[float, float]:
-    """Sub-pixel offset (dx, dy) of the maximum of a 3 x 3 patch (quadratic least squares)."""
-    yy, xx = np.mgrid[-1:2, -1:2]
-    A = np.column_stack([np.ones(9), xx.ravel(), yy.ravel(), xx.ravel() ** 2, (xx * yy).ravel(),
-                         yy.ravel() ** 2])  # fmt: skip
-    a = np.linalg.lstsq(A, s.ravel(), rcond=None)[0]
-    M = np.array([[2 * a[3], a[4]], [a[4], 2 * a[5]]])
-    if np.linalg.det(M) > 0 and M[0, 0] < 0:
-        d = np.linalg.solve(M, -a[1:3])
-        if np.all(np.abs(d) <= 1.0):
-            return float(d[0]), float(d[1])
-    # separable parabolas
-    out = []
-    for lo, c, hi in ((s[1, 0], s[1, 1], s[1, 2]), (s[0, 1], s[1, 1], s[2, 1])):
-        den = lo - 2 * c + hi
-        out.append(float(np.clip(0.5 * (lo - hi) / den, -0.5, 0.5)) if den < 0 else 0.0)
-    return out[0], out[1]
+#: the 3 x 3 quadratic's least-squares solution: coefficients (1, x, y, x^2, xy, y^2) of a patch
+_YY, _XX = np.mgrid[-1:2, -1:2]
+_QUAD_PINV = np.linalg.pinv(np.column_stack([np.ones(9), _XX.ravel(), _YY.ravel(), _XX.ravel() ** 2,
+                                             (_XX * _YY).ravel(), _YY.ravel() ** 2]))  # fmt: skip
+
+
+def quad_peaks(s: np.ndarray) -> np.ndarray:
+    """Sub-pixel offsets (m, 2) (dx, dy) of the maxima of ``m`` 3 x 3 patches (m, 3, 3): the
+    least-squares quadratic's maximum when it has one within a pixel, else separable parabolas
+    (each clipped to half a pixel; 0 where the parabola has no maximum)."""
+    s = np.asarray(s, np.float64).reshape(-1, 3, 3)
+    a = s.reshape(-1, 9) @ _QUAD_PINV.T
+    m00, m01, m11 = 2 * a[:, 3], a[:, 4], 2 * a[:, 5]
+    det = m00 * m11 - m01**2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = np.column_stack([-(m11 * a[:, 1] - m01 * a[:, 2]) / det, -(m00 * a[:, 2] - m01 * a[:, 1]) / det])
+    quad = (det > 0) & (m00 < 0) & np.all(np.abs(d) <= 1.0, axis=1)
+    out = np.zeros((len(s), 2))
+    for k, (lo, hi) in enumerate(((s[:, 1, 0], s[:, 1, 2]), (s[:, 0, 1], s[:, 2, 1]))):
+        den = lo - 2 * s[:, 1, 1] + hi
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[:, k] = np.where(den < 0, np.clip(0.5 * (lo - hi) / den, -0.5, 0.5), 0.0)
+    out[quad] = d[quad]
+    return out
 
 
 def measure_shifts(
@@ -235,7 +243,7 @@ def measure_shifts(
     for iy, dy in enumerate(range(-r, r + 1)):
         for ix, dx in enumerate(range(-r, r + 1)):
             rs = rpad[:, r + dy : r + dy + H, r + dx : r + dx + W]
-            sqr = box(np.einsum("chw,chw->hw", qf, rs, optimize=True))[ri, ci].astype(np.float64)
+            sqr = box(np.einsum("chw,chw->hw", qf, rs))[ri, ci].astype(np.float64)
             rr, cc = ri + r + dy, ci + r + dx
             s_r, s_rr = rsum_full[rr, cc].astype(np.float64), rsq_full[rr, cc].astype(np.float64)
             cov = sqr - qsum * s_r / nn
@@ -256,11 +264,19 @@ def measure_shifts(
     score = flat[np.arange(n), best]
     border = (by == 0) | (bx == 0) | (by == side - 1) | (bx == side - 1)
     shift = np.column_stack([bx - r, by - r]).astype(np.float64)
-    for i in np.flatnonzero(~border & valid):
-        dx, dy = _quad_peak(ncc[i, by[i] - 1 : by[i] + 2, bx[i] - 1 : bx[i] + 2])
-        shift[i] += (dx, dy)
+    i = np.flatnonzero(~border & valid)
+    if i.size:
+        o = np.arange(-1, 2)
+        shift[i] += quad_peaks(ncc[i[:, None, None], (by[i, None] + o)[:, :, None], (bx[i, None] + o)[:, None, :]])
     score = np.where(valid, score, np.nan)
     return {"shift": shift, "score": score, "border": border, "valid": valid}
+
+
+def _row_median(v: np.ndarray, count: np.ndarray) -> np.ndarray:
+    """Median of each row's first ``count`` values (NaN after them; rows with ``count`` >= 1)."""
+    v = np.sort(v, axis=1)  # NaN last
+    r = np.arange(len(v))
+    return 0.5 * (v[r, (count - 1) // 2] + v[r, count // 2])
 
 
 def consistent(pts: np.ndarray, vec: np.ndarray, radius: float, tol: float) -> np.ndarray:
@@ -270,16 +286,25 @@ def consistent(pts: np.ndarray, vec: np.ndarray, radius: float, tol: float) -> n
     """
     from scipy.spatial import cKDTree
 
-    ok = np.ones(len(pts), bool)
-    if len(pts) < 3:
+    n = len(pts)
+    ok = np.ones(n, bool)
+    if n < 3:
         return ok
-    tree = cKDTree(pts)
-    for i, nb in enumerate(tree.query_ball_point(pts, radius)):
-        nb = [j for j in nb if j != i]
-        if len(nb) < 2:
-            continue
-        v = vec[nb]
-        med = np.median(v, 0)
-        spread = 1.4826 * np.median(np.hypot(*(v - med).T))
-        ok[i] = np.hypot(*(vec[i] - med)) <= max(tol, 3 * spread)
+    nbs = cKDTree(pts).query_ball_point(pts, radius)
+    size = np.fromiter(map(len, nbs), np.intp, n)
+    nb = np.fromiter(itertools.chain.from_iterable(nbs), np.intp, int(size.sum()))
+    row = np.repeat(np.arange(n), size)
+    other = nb != row
+    nb, row = nb[other], row[other]
+    count = np.bincount(row, minlength=n)
+    has = count >= 2
+    if not has.any():
+        return ok
+    pos = np.arange(len(nb)) - np.repeat(np.cumsum(count) - count, count)
+    v = np.full((n, int(count.max()), 2), np.nan)
+    v[row, pos] = vec[nb]
+    v, count, own = v[has], count[has], vec[has]
+    med = np.column_stack([_row_median(v[:, :, 0], count), _row_median(v[:, :, 1], count)])
+    spread = 1.4826 * _row_median(np.hypot(*(v - med[:, None]).transpose(2, 0, 1)), count)
+    ok[has] = np.hypot(*(own - med).T) <= np.maximum(tol, 3 * spread)
     return ok
