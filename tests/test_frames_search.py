@@ -102,3 +102,30 @@ def test_localize_frame_records_the_search(small_demo_map, scene):
     assert v["similarity"] >= 1.5 * max(rec["search_attempts"][-1]["decoy_similarity"])
     assert rec["search_attempts"][-1]["similarity"] == v["similarity"]
     assert rec["reprojection_px"] is None  # no PnP inliers behind this pose
+
+
+def test_similarity_scores_a_batch_of_poses_as_one_at_a_time_and_the_truth_highest():
+    """``similarity`` of many poses at once (the grid's path) equals each pose alone (the
+    refinement's path), and on a textured ground the true pose scores highest."""
+    import cv2
+
+    from georeg.frames.refine import frame_channels, similarity
+    from georeg.frames.render import PinholeCamera, look_at
+
+    rng = np.random.default_rng(2)
+    tex = cv2.GaussianBlur(rng.uniform(0, 255, (240, 320)).astype(np.float32), (0, 0), 2.5)
+    tex = cv2.normalize(tex, None, 0, 255, cv2.NORM_MINMAX)
+    C = np.array([10.0, 20.0, 100.0])
+    cam = PinholeCamera(300.0, 300.0, 159.5, 119.5, 320, 240, look_at(C, C - [0, 0, 1], (0, 1, 0)), C)
+    img3 = frame_channels(tex)
+    rows, cols = np.mgrid[20:220:4, 20:300:4]
+    uv = np.c_[cols.ravel(), rows.ravel()].astype(float)
+    X = cam.backproject(uv, np.full(len(uv), 100.0))  # the ground plane z = 0
+    ref3 = img3[rows.ravel(), cols.ravel()].astype(np.float64)
+    shifts = np.array([[0, 0, 0], [1.5, 0, 0], [0, -2.0, 0], [3.0, 3.0, 0], [-6.0, 1.0, 0]])
+    mi, gc, frac = similarity(img3, cam, cam.R, C + shifts, X, ref3, 32)
+    for k, s in enumerate(shifts):
+        one = similarity(img3, cam, np.asarray(cam.R)[None], (C + s)[None], X, ref3, 32)
+        np.testing.assert_allclose([one[0][0], one[1][0], one[2][0]], [mi[k], gc[k], frac[k]], atol=1e-9)
+    assert np.argmax(mi + gc) == 0 and gc[0] > 0.99 and frac[0] == 1.0
+    assert (mi[1:] + gc[1:] < mi[0] + gc[0] - 0.2).all()

@@ -66,27 +66,35 @@ def apply_increment(R: np.ndarray, C: np.ndarray, xi: np.ndarray) -> tuple[np.nd
     return R2, -R2.T @ T2[:3, 3]
 
 
-def nmi(a: np.ndarray, b: np.ndarray, bins: int = 32) -> float:
-    """Normalised mutual information (H(A) + H(B)) / H(A, B) - 1 of two uint8-range samples."""
+def _entropy(p: np.ndarray) -> np.ndarray:
+    """Shannon entropy (nats) of each distribution along the last axis (zeros skipped)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return -np.where(p > 0, p * np.log(p), 0.0).sum(-1)
+
+
+def nmi(a: np.ndarray, b: np.ndarray, bins: int = 32, segments: np.ndarray | None = None) -> np.ndarray:
+    """Normalised mutual information (H(A) + H(B)) / H(A, B) - 1 of uint8-range samples, one
+    value per segment (``segments``: each sample's segment 0..k-1, sorted; None: one segment)."""
     ia = np.clip((a * (bins / 256.0)).astype(np.int64), 0, bins - 1)
     ib = np.clip((b * (bins / 256.0)).astype(np.int64), 0, bins - 1)
-    j = np.bincount(ia * bins + ib, minlength=bins * bins).astype(np.float64)
-    j /= max(j.sum(), 1.0)
-    pa, pb = j.reshape(bins, bins).sum(1), j.reshape(bins, bins).sum(0)
-
-    def ent(p):
-        p = p[p > 0]
-        return float(-(p * np.log(p)).sum())
-
-    hj = ent(j)
-    return (ent(pa) + ent(pb)) / hj - 1.0 if hj > 0 else 0.0
+    seg = np.zeros(len(ia), np.int64) if segments is None else segments
+    k = int(seg[-1]) + 1 if len(seg) else 1
+    j = np.bincount((seg * bins + ia) * bins + ib, minlength=k * bins * bins).astype(np.float64)
+    j = j.reshape(k, bins, bins)
+    j /= np.maximum(j.sum((1, 2)), 1.0)[:, None, None]
+    hj = _entropy(j.reshape(k, -1))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(hj > 0, (_entropy(j.sum(2)) + _entropy(j.sum(1))) / hj - 1.0, 0.0)
 
 
-def _ncc(a: np.ndarray, b: np.ndarray) -> float:
-    a = a - a.mean()
-    b = b - b.mean()
-    d = np.sqrt((a * a).sum() * (b * b).sum())
-    return float((a * b).sum() / d) if d > 0 else 0.0
+def _ncc(a: np.ndarray, b: np.ndarray, starts: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Normalised cross-correlation of ``a`` and ``b`` over each segment (``starts``, sizes ``n``)."""
+    a, b = a.astype(np.float64), b.astype(np.float64)
+    sa, sb = np.add.reduceat(a, starts), np.add.reduceat(b, starts)
+    cov = np.add.reduceat(a * b, starts) - sa * sb / n
+    var = (np.add.reduceat(a * a, starts) - sa**2 / n) * (np.add.reduceat(b * b, starts) - sb**2 / n)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(var > 0, cov / np.sqrt(np.maximum(var, 0.0)), 0.0)
 
 
 def _grad(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -96,28 +104,63 @@ def _grad(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     )
 
 
-def similarity_terms(frame: np.ndarray, gx: np.ndarray, gy: np.ndarray, cam: PinholeCamera,
-                     X: np.ndarray, ir: np.ndarray, rgx: np.ndarray, rgy: np.ndarray,
-                     bins: int) -> tuple[float, float, float]:  # fmt: skip
-    """(NMI - 1, gradient correlation, fraction of points inside the frame) at ``cam``."""
-    uv, z = cam.project(X)
-    ok = (
-        (z > 0)
-        & (uv[:, 0] >= 0)
-        & (uv[:, 0] <= cam.width - 1)
-        & (uv[:, 1] >= 0)
-        & (uv[:, 1] <= cam.height - 1)
-    )
-    frac = float(ok.mean()) if len(ok) else 0.0
-    if ok.sum() < 100:
-        return 0.0, 0.0, frac
-    mx = uv[ok, 0].astype(np.float32).reshape(-1, 1)
-    my = uv[ok, 1].astype(np.float32).reshape(-1, 1)
-    f = cv2.remap(frame, mx, my, cv2.INTER_LINEAR).ravel()
-    fx = cv2.remap(gx, mx, my, cv2.INTER_LINEAR).ravel()
-    fy = cv2.remap(gy, mx, my, cv2.INTER_LINEAR).ravel()
-    mi = nmi(ir[ok], f, bins)
-    gc = 0.5 * (_ncc(rgx[ok], fx) + _ncc(rgy[ok], fy))
+def frame_channels(frame: np.ndarray) -> np.ndarray:
+    """The frame's intensity and gradients (H, W, 3) float32: what ``similarity`` samples."""
+    f = frame.astype(np.float32)
+    return np.dstack([f, *_grad(f)])
+
+
+#: ``similarity``'s poses x points projected at once (bounded memory)
+BATCH_POINTS = 1_000_000
+
+
+def _sample(img: np.ndarray, u: np.ndarray, v: np.ndarray, cols: int = 4096) -> np.ndarray:
+    """Bilinear samples (n, channels) of ``img`` at (u, v): one ``cv2.remap``, its maps laid out
+    ``cols`` wide (remap takes fewer than 32,767 rows)."""
+    n = len(u)
+    rows = -(-n // cols)
+    mx, my = np.zeros(rows * cols, np.float32), np.zeros(rows * cols, np.float32)
+    mx[:n], my[:n] = u, v
+    out = cv2.remap(img, mx.reshape(rows, cols), my.reshape(rows, cols), cv2.INTER_LINEAR)
+    return out.reshape(rows * cols, -1)[:n]
+
+
+def similarity(img3: np.ndarray, cam: PinholeCamera, R: np.ndarray, C: np.ndarray, X: np.ndarray,
+               ref3: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """(NMI - 1, gradient correlation, fraction of points inside the frame) of the points ``X``
+    (N, 3) carrying ``ref3`` (N, 3: the render's intensity and gradients) seen from each pose
+    (``R`` (P, 3, 3) or one (3, 3) for all, ``C`` (P, 3)) of ``cam``'s intrinsics in the frame
+    ``img3`` (``frame_channels``); arrays (P,). A pose with fewer than 100 points inside scores 0."""
+    R, C = np.asarray(R, float), np.asarray(C, float).reshape(-1, 3)
+    P, N = len(C), len(X)
+    mi, gc, frac = np.zeros(P), np.zeros(P), np.zeros(P)
+    step = max(1, BATCH_POINTS // max(N, 1))
+    if R.ndim == 2 and N:  # one rotation: (X - C_p) R^T = (X - C_0) R^T - (C_p - C_0) R^T
+        A, T = (X - C[0]) @ R.T, (C - C[0]) @ R.T
+    for p0 in range(0, P if N else 0, step):
+        if R.ndim == 2:
+            Xc = [A[None, :, k] - T[p0 : p0 + step, k, None] for k in range(3)]
+        else:
+            Xc = list(np.moveaxis((X[None] - C[p0 : p0 + step, None]) @ R[p0 : p0 + step].transpose(0, 2, 1), 2, 0))
+        z = Xc[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = cam.fx * Xc[0] / z + cam.cx
+            v = cam.fy * Xc[1] / z + cam.cy
+        ok = (z > 0) & (u >= 0) & (u <= cam.width - 1) & (v >= 0) & (v <= cam.height - 1)
+        n = ok.sum(1)
+        frac[p0 : p0 + len(ok)] = n / N
+        ok &= (n >= 100)[:, None]
+        pi, ni = np.nonzero(ok)
+        if not pi.size:
+            continue
+        f = _sample(img3, u[pi, ni], v[pi, ni])
+        has = np.flatnonzero(n >= 100)
+        seg = np.searchsorted(has, pi)  # each sample's rank among the scored poses
+        cnt = n[has].astype(np.float64)
+        starts = np.r_[0, np.cumsum(n[has])[:-1]]
+        r = ref3[ni]
+        mi[p0 + has] = nmi(r[:, 0], f[:, 0], bins, seg)
+        gc[p0 + has] = 0.5 * (_ncc(r[:, 1], f[:, 1], starts, cnt) + _ncc(r[:, 2], f[:, 2], starts, cnt))
     return mi, gc, frac
 
 
@@ -140,10 +183,7 @@ def refine_pose(
     for o in reversed(range(int(c["octaves"]))):
         s = s_fine / 2**o
         cs = cam.with_pose(R, C).scaled(s)
-        frame = cv2.resize(gray, (cs.width, cs.height), interpolation=cv2.INTER_AREA).astype(
-            np.float32
-        )
-        gx, gy = _grad(frame)
+        img3 = frame_channels(cv2.resize(gray, (cs.width, cs.height), interpolation=cv2.INTER_AREA))
         rr = render(cloud, cs)
         rg = rr.gray().astype(np.float32)
         rgx, rgy = _grad(rg)
@@ -155,15 +195,12 @@ def refine_pose(
         if rows.size < 200:
             break
         X = cs.backproject(np.c_[cols, rows].astype(float), rr.depth[rows, cols])
-        ir, pgx, pgy = rg[rows, cols], rgx[rows, cols], rgy[rows, cols]
+        ref3 = np.c_[rg[rows, cols], rgx[rows, cols], rgy[rows, cols]]
         R0, C0 = R, C
 
-        def cost(xi, R0=R0, C0=C0, cs=cs, frame=frame, gx=gx, gy=gy, X=X, ir=ir, pgx=pgx, pgy=pgy):
-            Rt, Ct = apply_increment(R0, C0, xi)
-            mi, gc, frac = similarity_terms(
-                frame, gx, gy, cs.with_pose(Rt, Ct), X, ir, pgx, pgy, bins
-            )
-            return -(mi + w * gc) * min(1.0, frac / 0.8)
+        def cost(xi, R0=R0, C0=C0, cs=cs, img3=img3, X=X, ref3=ref3):
+            mi, gc, frac = similarity(img3, cs, *apply_increment(R0, C0, xi), X, ref3, bins)
+            return float(-(mi[0] + w * gc[0]) * min(1.0, frac[0] / 0.8))
 
         f0 = cost(np.zeros(6))
         step_r = np.radians(float(c["rot_step_deg"])) * 2**o

@@ -31,7 +31,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from georeg.frames.refine import _grad, refine_pose, similarity_terms
+from georeg.frames.refine import _grad, frame_channels, refine_pose, similarity
 from georeg.frames.render import PinholeCamera, PointCloud, render
 
 DEFAULTS: dict[str, Any] = {
@@ -99,20 +99,21 @@ def grid_scores(gray: np.ndarray, cam0: PinholeCamera, cloud: PointCloud,
         k = np.random.default_rng(int(c["seed"])).choice(n_valid, int(c["max_points"]), replace=False)
         rows, cols = rows[k], cols[k]
     X = wide.backproject(np.c_[cols, rows].astype(float), rr.depth[rows, cols])
-    ir, pgx, pgy = rg[rows, cols], rgx[rows, cols], rgy[rows, cols]
-    frame = cv2.resize(gray, (cs.width, cs.height), interpolation=cv2.INTER_AREA).astype(np.float32)
-    gx, gy = _grad(frame)
+    ref3 = np.c_[rg[rows, cols], rgx[rows, cols], rgy[rows, cols]]
+    img3 = frame_channels(cv2.resize(gray, (cs.width, cs.height), interpolation=cv2.INTER_AREA))
     offs = np.arange(-float(c["span_m"]), float(c["span_m"]) + 1e-6, float(c["step_m"]))
     per_px = n_valid / len(X) / (cs.width * cs.height)  # render pixels per sampled point / frame px
+    dx, dy = (a.ravel() for a in np.meshgrid(offs, offs, indexing="ij"))  # dx outer, dy inner
+    shift = np.c_[dx, dy, np.zeros_like(dx)]
     out = []
     for p in c["pitch_deg"]:
         for h in c["heading_deg"]:
-            for dx in offs:
-                for dy in offs:
-                    mi, gc, frac = similarity_terms(frame, gx, gy, moved(cs, p, h, dx, dy), X, ir,
-                                                    pgx, pgy, 32)  # fmt: skip
-                    cover = frac * len(X) * per_px
-                    out.append((( mi + gc) * min(1.0, cover / float(c["min_coverage"])), p, h, dx, dy))
+            Rp = moved(cs, p, h, 0.0, 0.0).R  # the translations leave the rotation as is
+            mi, gc, frac = similarity(img3, cs, Rp,
+                                      np.asarray(cs.C, float) + shift, X, ref3, 32)  # fmt: skip
+            cover = frac * len(X) * per_px
+            score = (mi + gc) * np.minimum(1.0, cover / float(c["min_coverage"]))
+            out += [(s_, p, h, a, b) for s_, a, b in zip(score, dx, dy, strict=True)]
     out = np.array(out, float)
     return out[np.argsort(-out[:, 0], kind="stable")]
 
