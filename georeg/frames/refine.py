@@ -77,9 +77,9 @@ def nmi(a: np.ndarray, b: np.ndarray, bins: int = 32, segments: np.ndarray | Non
     value per segment (``segments``: each sample's segment 0..k-1, sorted; None: one segment)."""
     ia = np.clip((a * (bins / 256.0)).astype(np.int64), 0, bins - 1)
     ib = np.clip((b * (bins / 256.0)).astype(np.int64), 0, bins - 1)
-    seg = np.zeros(len(ia), np.int64) if segments is None else segments
-    k = int(seg[-1]) + 1 if len(seg) else 1
-    j = np.bincount((seg * bins + ia) * bins + ib, minlength=k * bins * bins).astype(np.float64)
+    k = int(segments[-1]) + 1 if segments is not None and len(segments) else 1
+    key = ia * bins + ib if segments is None else (segments * bins + ia) * bins + ib
+    j = np.bincount(key, minlength=k * bins * bins).astype(np.float64)
     j = j.reshape(k, bins, bins)
     j /= np.maximum(j.sum((1, 2)), 1.0)[:, None, None]
     hj = _entropy(j.reshape(k, -1))
@@ -155,7 +155,7 @@ def similarity(img3: np.ndarray, cam: PinholeCamera, R: np.ndarray, C: np.ndarra
             continue
         f = _sample(img3, u[pi, ni], v[pi, ni])
         has = np.flatnonzero(n >= 100)
-        seg = np.searchsorted(has, pi)  # each sample's rank among the scored poses
+        seg = np.searchsorted(has, pi) if len(has) > 1 else None  # each sample's rank among the scored poses
         cnt = n[has].astype(np.float64)
         starts = np.r_[0, np.cumsum(n[has])[:-1]]
         r = ref3[ni]
