@@ -120,7 +120,7 @@ def test_registration_record_says_when_learned_did_not_run(monkeypatch):
 
     sources = tuple((n, stub(n)) if n != "learned" else (n, f) for n, f in fuse.SOURCES)
     monkeypatch.setattr(fuse, "SOURCES", sources)
-    q = fuse.QueryInput(np.zeros((8, 8), np.uint8), None, 1.0, [1.0], 0)  # type: ignore[arg-type]
+    q = fuse.QueryInput(np.arange(1, 65, dtype=np.uint8).reshape(8, 8), None, 1.0, [1.0], 0)  # type: ignore[arg-type]
     _, split, ran, _ = fuse.run_sources(q, None, [], {"learned": {"enabled": "auto"}})  # type: ignore[arg-type]
     assert "not installed" in split["learned"]["reason"] and not split["learned"]["ran"]
     assert [r["name"] for r in ran] == ["features"]

@@ -304,6 +304,8 @@ def test_pooled_bands_register_a_query_whose_primary_band_has_no_structure(synth
     conf = reg_conf()
     alone = register_query(flat, src, conf, 0.8, [0.8], seed=4)
     assert alone["status"] == "not_found"
+    assert "one value" in alone["reason"]  # said as such, and no source after the features ran
+    assert {s["name"] for s in alone["sources"]} <= {"features", "whole_query"}
     res = register_query(np.stack([flat, q]), src, conf, 0.8, [0.8], seed=4)
     assert res["status"] == "registered", res.get("reason")
     err = error_px(np.array(res["homography"]), Minv, tr, q)
@@ -555,3 +557,15 @@ def test_kdtree_matches_do_not_depend_on_what_the_process_drew_before():
         d, ii = matching.knn2(md)(q)
         got.append(ii)
     assert np.array_equal(got[0], got[1])
+
+
+def test_structureless_names_a_query_without_anything_to_match():
+    from georeg.register.fuse import structureless
+
+    rng = np.random.default_rng(0)
+    tex = rng.integers(1, 255, (40, 50)).astype(np.uint8)
+    assert "no valid pixel" in structureless(np.zeros((40, 50), np.uint8))
+    assert "one value" in structureless(np.where(tex > 30, 77, 0).astype(np.uint8))  # holes allowed
+    assert "one value" in structureless(np.stack([np.full((40, 50), 9, np.uint8), np.full((40, 50), 200, np.uint8)]))
+    assert structureless(tex) is None
+    assert structureless(np.stack([np.full((40, 50), 9, np.uint8), tex])) is None  # one band suffices

@@ -140,7 +140,7 @@ def test_sources_run_in_order_only_while_nothing_is_accepted(monkeypatch):
     monkeypatch.setattr(fuse, "SOURCES", (("whole_query", whole), ("small_windows", make("a", False)),
                                           ("cfog_null", make("b", True)), ("new", make("c", True))))  # fmt: skip
     parts0 = [{"part": 0, "accepted": False, "candidates_tried": 8}]
-    q = QueryInput(np.zeros((8, 8), np.uint8), None, 1.0, [1.0])  # type: ignore[arg-type]
+    q = QueryInput(np.arange(1, 65, dtype=np.uint8).reshape(8, 8), None, 1.0, [1.0])  # type: ignore[arg-type]
     parts, split, ran, _ = fuse.run_sources(q, MapView(None), parts0, {})  # type: ignore[arg-type]
     assert calls == ["a", "b"]  # "c" after an accepted source: not run
     assert seen == [8, 10]  # one a-contrario count: each source sees the tests run before it
@@ -194,7 +194,7 @@ def test_sources_skipped_for_a_refused_candidate_run_in_a_second_pass(monkeypatc
             "ran": True, "candidates": 3}  # fmt: skip
 
     _stub_second_pass(monkeypatch, late)
-    q = QueryInput(np.zeros((8, 8), np.uint8), None, 1.0, [1.0])  # type: ignore[arg-type]
+    q = QueryInput(np.arange(1, 65, dtype=np.uint8).reshape(8, 8), None, 1.0, [1.0])  # type: ignore[arg-type]
     parts0 = [{"part": 0, "accepted": True, "candidates_tried": 9}]
     fused, rec = fuse.decide(q, MapView(None), parts0, {})  # type: ignore[arg-type]
     assert fused["status"] == "registered" and seen == [9]
@@ -223,7 +223,7 @@ def test_second_pass_candidate_at_another_place_than_the_refused_one_is_refused(
                              "homography": shift(dx)}], {"ran": True, "candidates": 3}  # fmt: skip
         return late
 
-    q = QueryInput(np.zeros((100, 100), np.uint8), None, 1.0, [1.0])  # type: ignore[arg-type]
+    q = QueryInput((np.arange(10_000) % 250 + 1).astype(np.uint8).reshape(100, 100), None, 1.0, [1.0])  # type: ignore[arg-type]
     parts0 = [{"part": 0, "accepted": True, "candidates_tried": 9, "homography": shift(0.0)}]
     for dx, registered in ((120.0, False), (-120.0, False), (30.0, True), (0.0, True)):
         _stub_second_pass(monkeypatch, late_at(dx))

@@ -293,7 +293,7 @@ Source = Callable[
 ]
 
 #: the sources of candidates after the parts' feature search, in order; each runs only while no
-#: candidate is accepted. A source is one function with this signature: it returns the parts
+#: candidate is accepted (and none on a query without structure: ``structureless``). A source is one function with this signature: it returns the parts
 #: with its accepted candidate appended (a part record) and its own record (``ran``, and
 #: ``candidates`` tried when it ran). Adding a source is one entry here.
 SOURCES: tuple[tuple[str, Source], ...] = (
@@ -310,6 +310,19 @@ SOURCES: tuple[tuple[str, Source], ...] = (
 #: a source's record when a candidate was accepted before it (``decide`` runs it in a second
 #: pass when the verifier refuses that candidate)
 SKIPPED = "a search was accepted"
+
+
+def structureless(u8: np.ndarray) -> str | None:
+    """Why the query (uint8, 0 = nodata; one band or a pooled stack) has nothing to match, or
+    None: no valid pixel, or every band one value where it is valid. No source can accept
+    such a query, so they are not run (a constant band went through all of them: 25 CPU s)."""
+    bands = u8.reshape(-1, *u8.shape[-2:])
+    valid = [b[b > 0] for b in bands]
+    if not any(v.size for v in valid):
+        return "the query has no valid pixel: nothing to match"
+    if all(v.size == 0 or v.min() == v.max() for v in valid):
+        return "the query is one value wherever it is valid: no structure to match"
+    return None
 
 #: a second-pass candidate whose footprint centre lies farther than this fraction of its
 #: footprint's side from every refused candidate's is at another place: two candidates that each
@@ -367,6 +380,7 @@ def run_sources(
     (the plan; ``small``: the small-query sources' records; ``sources_by_name``: every source's
     record, which ``decide`` takes out), the ``sources`` record (name, candidates tried,
     accepted, seconds of each source that ran) and their timings."""
+    blank = structureless(q.u8)
     if earlier is None:
         recs: dict[str, dict[str, Any]] = {}
         ran = [{"name": "features", "accepted": any(p.get("accepted") for p in parts),
@@ -379,6 +393,9 @@ def run_sources(
             continue  # run in the earlier pass
         if any(p.get("accepted") for p in parts) and name != "whole_query":
             recs[name] = {"ran": False, "reason": SKIPPED}
+            continue
+        if blank and name != "whole_query":
+            recs[name] = {"ran": False, "reason": blank}
             continue
         t0 = time.perf_counter()
         n0 = len(parts)
@@ -425,6 +442,9 @@ def decide(
     parts, split, ran, timings = run_sources(q, view, parts, conf)
     recs = split.pop("sources_by_name")
     fused, rec = check_fused(q, view, parts, conf, split, dsm, timings)
+    blank = structureless(q.u8)
+    if blank and fused.get("status") != "registered":
+        fused = {**fused, "reason": blank}
     skipped = [n for n, r in recs.items() if r.get("reason") == SKIPPED]
     if fused.get("status") == "registered" or not skipped:
         return fused, {**rec, "sources": ran, "second_pass": None}
