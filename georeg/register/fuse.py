@@ -293,9 +293,10 @@ Source = Callable[
 ]
 
 #: the sources of candidates after the parts' feature search, in order; each runs only while no
-#: candidate is accepted (and none on a query without structure: ``structureless``). A source is one function with this signature: it returns the parts
-#: with its accepted candidate appended (a part record) and its own record (``ran``, and
-#: ``candidates`` tried when it ran). Adding a source is one entry here.
+#: candidate is accepted (and none on a query without structure: ``structureless``). A source is
+#: one function with this signature: it returns the parts with its accepted candidate appended
+#: (a part record) and its own record (``ran``, and ``candidates`` tried when it ran). Adding a
+#: source is one entry here.
 SOURCES: tuple[tuple[str, Source], ...] = (
     ("whole_query", whole_query_source),
     ("small_windows", small.window_source),
@@ -323,6 +324,7 @@ def structureless(u8: np.ndarray) -> str | None:
     if all(v.size == 0 or v.min() == v.max() for v in valid):
         return "the query is one value wherever it is valid: no structure to match"
     return None
+
 
 #: a second-pass candidate whose footprint centre lies farther than this fraction of its
 #: footprint's side from every refused candidate's is at another place: two candidates that each
