@@ -369,6 +369,7 @@ def run_sources(
     parts: list[dict[str, Any]],
     conf: dict[str, Any],
     earlier: tuple[dict[str, Any], list[dict[str, Any]]] | None = None,
+    blank: str | None = None,
 ) -> tuple[list[dict[str, Any]], dict[str, Any], list[dict[str, Any]], dict[str, float]]:
     """After the parts' feature search, every source of ``SOURCES`` in turn while nothing is
     accepted (the whole-query search also records the split plan). Each source sees, as
@@ -376,13 +377,13 @@ def run_sources(
     its NFA counts them with its own (one a-contrario count for the whole search, so a source
     added at the end cannot add false accepts by testing on its own budget). ``earlier``: an
     earlier pass's source records and ``sources`` (``decide``'s second pass): only the sources it
-    skipped run, after every test it made.
+    skipped run, after every test it made. ``blank``: why the query has nothing to match
+    (``structureless``): no source but the whole-query search runs.
 
     Returns the parts (one more per accepted source), the split record of registration.json
     (the plan; ``small``: the small-query sources' records; ``sources_by_name``: every source's
     record, which ``decide`` takes out), the ``sources`` record (name, candidates tried,
     accepted, seconds of each source that ran) and their timings."""
-    blank = structureless(q.u8)
     if earlier is None:
         recs: dict[str, dict[str, Any]] = {}
         ran = [{"name": "features", "accepted": any(p.get("accepted") for p in parts),
@@ -441,10 +442,10 @@ def decide(
     (Landsat Pucallpa, red/green 2015 on 2005: the feature pose 8 px from the truth, vetoed by the
     orthophoto check; rift then found a look-alike meander 186 px away). Returns the fused result and the record: ``split``, ``parts``,
     ``sources``, the terms' records (None when not run), ``timings_s`` and ``second_pass``."""
-    parts, split, ran, timings = run_sources(q, view, parts, conf)
+    blank = structureless(q.u8)
+    parts, split, ran, timings = run_sources(q, view, parts, conf, blank=blank)
     recs = split.pop("sources_by_name")
     fused, rec = check_fused(q, view, parts, conf, split, dsm, timings)
-    blank = structureless(q.u8)
     if blank and fused.get("status") != "registered":
         fused = {**fused, "reason": blank}
     skipped = [n for n, r in recs.items() if r.get("reason") == SKIPPED]
