@@ -125,7 +125,7 @@ def test_similarity_scores_a_batch_of_poses_as_one_at_a_time_and_the_truth_highe
     shifts = np.array([[0, 0, 0], [1.5, 0, 0], [0, -2.0, 0], [3.0, 3.0, 0], [-6.0, 1.0, 0]])
     mi, gc, frac = similarity(img3, cam, cam.R, C + shifts, X, ref3, 32)
     for k, s in enumerate(shifts):
-        one = similarity(img3, cam, np.asarray(cam.R)[None], (C + s)[None], X, ref3, 32)
+        one = similarity(img3, cam, cam.R, (C + s)[None], X, ref3, 32)
         np.testing.assert_allclose([one[0][0], one[1][0], one[2][0]], [mi[k], gc[k], frac[k]], atol=1e-9)
     assert np.argmax(mi + gc) == 0 and gc[0] > 0.99 and frac[0] == 1.0
     assert (mi[1:] + gc[1:] < mi[0] + gc[0] - 0.2).all()

@@ -129,19 +129,15 @@ def similarity(img3: np.ndarray, cam: PinholeCamera, R: np.ndarray, C: np.ndarra
                ref3: np.ndarray, bins: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """(NMI - 1, gradient correlation, fraction of points inside the frame) of the points ``X``
     (N, 3) carrying ``ref3`` (N, 3: the render's intensity and gradients) seen from each pose
-    (``R`` (P, 3, 3) or one (3, 3) for all, ``C`` (P, 3)) of ``cam``'s intrinsics in the frame
+    (one rotation ``R`` (3, 3), centres ``C`` (P, 3)) of ``cam``'s intrinsics in the frame
     ``img3`` (``frame_channels``); arrays (P,). A pose with fewer than 100 points inside scores 0."""
     R, C = np.asarray(R, float), np.asarray(C, float).reshape(-1, 3)
     P, N = len(C), len(X)
     mi, gc, frac = np.zeros(P), np.zeros(P), np.zeros(P)
     step = max(1, BATCH_POINTS // max(N, 1))
-    if R.ndim == 2 and N:  # one rotation: (X - C_p) R^T = (X - C_0) R^T - (C_p - C_0) R^T
-        A, T = (X - C[0]) @ R.T, (C - C[0]) @ R.T
+    A, T = (X - C[0]) @ R.T, (C - C[0]) @ R.T  # (X - C_p) R^T = (X - C_0) R^T - (C_p - C_0) R^T
     for p0 in range(0, P if N else 0, step):
-        if R.ndim == 2:
-            Xc = [A[None, :, k] - T[p0 : p0 + step, k, None] for k in range(3)]
-        else:
-            Xc = list(np.moveaxis((X[None] - C[p0 : p0 + step, None]) @ R[p0 : p0 + step].transpose(0, 2, 1), 2, 0))
+        Xc = [A[None, :, k] - T[p0 : p0 + step, k, None] for k in range(3)]
         z = Xc[2]
         with np.errstate(divide="ignore", invalid="ignore"):
             u = cam.fx * Xc[0] / z + cam.cx
