@@ -37,6 +37,19 @@ def test_write_json_numpy(tmp_path):
     assert json.loads((tmp_path / "x.json").read_text()) == {"a": 1.5, "b": [0, 1, 2]}
 
 
+def test_write_json_is_strict_json(tmp_path):
+    """NaN / infinity (a fit with no residual, an empty statistic) become null: a strict parser
+    (jq, a browser's JSON.parse) refuses Python's NaN token."""
+    import numpy as np
+
+    write_json(tmp_path / "x.json", {"r": float("nan"), "s": [np.float64(np.inf), 2.0],
+                                     "t": np.array([np.nan, 1.0]), "u": (np.int64(3), "a")})  # fmt: skip
+    text = (tmp_path / "x.json").read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    strict = json.loads(text, parse_constant=lambda c: pytest.fail(f"non-standard token {c}"))
+    assert strict == {"r": None, "s": [None, 2.0], "t": [None, 1.0], "u": [3, "a"]}
+
+
 def test_input_error_names_file():
     err = InputError("/data/ortho.tif", "has no CRS", "set map.crs or add a .aux.xml")
     assert str(err) == "/data/ortho.tif: has no CRS (set map.crs or add a .aux.xml)"

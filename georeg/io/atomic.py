@@ -6,6 +6,7 @@ import contextlib
 import errno
 import glob
 import json
+import math
 import os
 import shutil
 from collections.abc import Iterator
@@ -83,9 +84,23 @@ def disk_full(exc: BaseException) -> bool:
 
 
 def write_json(path: str | os.PathLike, data: Any) -> None:
-    """Write ``data`` as indented JSON, atomically."""
+    """Write ``data`` as indented JSON, atomically; a NaN or infinite number is written as null
+    (strict JSON, RFC 8259: Python's ``NaN`` token breaks jq, browsers' ``JSON.parse`` and GDAL)."""
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=2, default=_json_default) + "\n")
+        tmp.write_text(json.dumps(finite(data), indent=2, allow_nan=False) + "\n")
+
+
+def finite(obj: Any) -> Any:
+    """``obj`` with NumPy values as Python ones and NaN / infinite floats as None (JSON null)."""
+    if isinstance(obj, dict):
+        return {k: finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite(v) for v in obj]
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, (str, int, bool)) or obj is None:
+        return obj
+    return finite(_json_default(obj))
 
 
 def write_text(path: str | os.PathLike, text: str) -> None:

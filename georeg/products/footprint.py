@@ -21,7 +21,7 @@ from xml.sax.saxutils import escape
 import numpy as np
 import pyproj
 
-from georeg.io.atomic import atomic_path, write_text
+from georeg.io.atomic import atomic_path, finite, write_text
 
 CORNER_NAMES = ("line0/sample0", "line0/last sample", "last line/last sample", "last line/sample0")
 
@@ -157,6 +157,6 @@ def write_footprint(
     """Write both files atomically; returns the GeoJSON feature's properties."""
     gj = footprint_geojson(x, y, crs_wkt, properties)
     with atomic_path(out_geojson) as tmp:
-        tmp.write_text(json.dumps(gj, indent=1) + "\n")
+        tmp.write_text(json.dumps(finite(gj), indent=1, allow_nan=False) + "\n")
     write_text(out_kml, footprint_kml(x, y, crs_wkt, name))
     return gj["features"][0]["properties"]
