@@ -51,7 +51,10 @@ def _check_inputs(config):
         )
 
 
-_check_inputs(config)
+# once, in the snakemake a user starts; not again in every cluster job (a Slurm job's snakemake
+# parses this file too: a county's thousands of headers would be read by each of its jobs)
+if workflow.is_main_process:
+    _check_inputs(config)
 
 QUERIES = sorted(config["queries"])
 FRAME_SETS = sorted(config.get("frames") or {})  # frame geo-localisation sets (frames, report)

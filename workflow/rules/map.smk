@@ -6,6 +6,12 @@
 MAP_ELEV_LAYERS = ["dsm", "dtm", "ndsm", "density"]
 MAP_MOSAIC_LAYERS = ["ortho"] + MAP_ELEV_LAYERS
 
+# Headers in, a JSON or a VRT out (a second each, even for a county): on a cluster they run in the
+# submitting snakemake, not through the queue (each queued job costs ~10 s of start-up and polls)
+localrules:
+    map_grid,
+    map_mosaic,
+
 
 checkpoint map_grid:
     input:
