@@ -202,6 +202,7 @@ def test_unknown_camera_without_exif(bench, case_map):
     assert pos < (3.0 if case == "odm" else 4 * gsd) and rot < 1.0, (pos, rot)
 
 
+@pytest.mark.slow
 def test_unknown_camera_on_a_map_too_large_to_match_whole(bench, tmp_path):
     """camera: null with the whole-map step switched off (as on a map above
     ``direct.whole_map_first_px``): the coarse focal search finds the place, and the focal and k1

@@ -2,7 +2,8 @@
 two runs in one checkout (``--directory``), paths with spaces and non-ASCII characters.
 
 One module fixture starts three workflows from this checkout at the same time, each in its own
-``--directory``: A and B the tiny demo (config/test.yaml + a constant query) with the same seed,
+``--directory``: A and B the small demo (tests/data/slurm_small.yaml: one map tile, a 96 x 128
+query; + its ``outside`` query and two constant ones) with the same seed,
 C a map-only run on a synthetic orthophoto + LiDAR under a path with spaces and accents. B is
 SIGKILLed (whole process group, as a crash would) in the middle of ``map_tile_elevation``, then
 rerun; A runs uninterrupted. The library-level matrix is test_reliability.py; the table of all
@@ -28,7 +29,10 @@ from test_map_synthetic import make_las, make_ortho, scene_points
 from test_query_io import write_envi
 
 REPO = Path(__file__).resolve().parents[1]
-TEST_CONFIG = REPO / "config" / "test.yaml"
+# the small scene of the Slurm test (one map tile): every check here is about the workflow's
+# files, not the registration, and A and B run it whole, three times in all (config/test.yaml's
+# 2 x 2 tiles and 300 x 360 queries: 321 s of setup in CI against ~130 s)
+SMALL_CONFIG = REPO / "tests" / "data" / "slurm_small.yaml"
 pytestmark = pytest.mark.slow
 
 #: JSON keys that hold wall-clock times (differ between runs by nature)
@@ -91,8 +95,8 @@ def products(work: Path) -> dict[str, str]:
 
 
 def demo_config(work: Path) -> Path:
-    """config/test.yaml plus a query of one constant value and an all-zero float query (no
-    features at all)."""
+    """The small demo plus its `outside` query (nothing to register it), a query of one constant
+    value and an all-zero float query (no features at all)."""
     (work / "inputs").mkdir(parents=True)
     cube = np.full((5, 120, 100), 500, np.uint16)
     write_envi(
@@ -103,7 +107,12 @@ def demo_config(work: Path) -> Path:
         work / "inputs" / "zero", np.zeros((5, 120, 100), np.float32), "bil",
         extra="wavelength units = nm\nwavelength = {900, 1100, 1200, 1500, 1700}\n",
     )  # fmt: skip
-    cfg = yaml.safe_load(TEST_CONFIG.read_text())
+    cfg = yaml.safe_load(SMALL_CONFIG.read_text())
+    demo = cfg["queries"]["demo"]
+    cfg["queries"]["outside"] = {
+        **demo, "image": "results/demo/queries/outside.hdr",
+        "truth": "results/demo/queries/outside_truth.tif",
+    }  # fmt: skip
     cfg["queries"]["flat"] = {"image": "inputs/flat.hdr", "band": "1200nm", "gsd_m": 0.8}
     cfg["queries"]["zero"] = {"image": "inputs/zero.hdr", "band": "1200nm", "gsd_m": 0.8}
     p = work / "config.yaml"

@@ -10,6 +10,8 @@ import laspy
 import numpy as np
 import pytest
 
+pytestmark = pytest.mark.slow  # the module's georeferenced video: about 80 s
+
 VIDEO = {"n_frames": 90, "width": 480, "height": 360, "fx": 390.0}
 
 
