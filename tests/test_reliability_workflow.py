@@ -31,7 +31,7 @@ from test_query_io import write_envi
 REPO = Path(__file__).resolve().parents[1]
 # the small scene of the Slurm test (one map tile): every check here is about the workflow's
 # files, not the registration, and A and B run it whole, three times in all (config/test.yaml's
-# 2 x 2 tiles and 300 x 360 queries: 321 s of setup in CI against ~130 s)
+# 2 x 2 tiles and 300 x 360 queries: a setup of 227 s alone, 321 s in CI; this scene 190; 267 s)
 SMALL_CONFIG = REPO / "tests" / "data" / "slurm_small.yaml"
 pytestmark = pytest.mark.slow
 
