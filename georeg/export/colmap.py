@@ -8,7 +8,6 @@ CRS minus ``offset`` (rounded near the cameras), times ``unit_m`` for a CRS in f
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +15,7 @@ import pyproj
 
 from georeg.export.points import Points
 from georeg.export.views import View
-from georeg.io.atomic import finite, write_text
+from georeg.io.atomic import write_json, write_text
 
 
 def quaternion(R: np.ndarray) -> np.ndarray:
@@ -114,5 +113,5 @@ def write_model(out_dir: str | Path, views: list[View], pts: Points, crs_wkt: st
                "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n"
                f"# Number of points: {len(pt_lines)}, mean track length: "
                f"{n_obs / max(len(pt_lines), 1):.4f}\n" + "".join(f"{s}\n" for s in pt_lines))  # fmt: skip
-    write_text(out / "georef.json", json.dumps(finite(geo), indent=1, allow_nan=False))
+    write_json(out / "georef.json", geo, indent=1)
     return geo

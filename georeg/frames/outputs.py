@@ -3,7 +3,6 @@ overlay images (the map rendered at the found pose, edge-overlaid and blended on
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 from xml.sax.saxutils import escape
@@ -13,7 +12,7 @@ import numpy as np
 import pyproj
 
 from georeg.frames.render import PinholeCamera, Render
-from georeg.io.atomic import atomic_path, finite, write_json, write_text
+from georeg.io.atomic import atomic_path, write_json, write_text
 
 
 def footprint_xy(cam: PinholeCamera, z_ground: float, n: int = 4) -> np.ndarray:
@@ -60,7 +59,7 @@ def write_feature_collection(path: str | Path, feats: list[dict], crs: pyproj.CR
     urn = crs_urn(crs)
     if urn:
         fc["crs"] = {"type": "name", "properties": {"name": urn}}
-    write_text(path, json.dumps(finite(fc), indent=1, allow_nan=False))
+    write_json(path, fc, indent=1)
 
 
 def write_geojson(path: str | Path, poses: list[dict], crs_wkt: str) -> None:

@@ -83,11 +83,11 @@ def disk_full(exc: BaseException) -> bool:
     return False
 
 
-def write_json(path: str | os.PathLike, data: Any) -> None:
+def write_json(path: str | os.PathLike, data: Any, indent: int = 2) -> None:
     """Write ``data`` as indented JSON, atomically; a NaN or infinite number is written as null
     (strict JSON, RFC 8259: Python's ``NaN`` token breaks jq, browsers' ``JSON.parse`` and GDAL)."""
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(finite(data), indent=2, allow_nan=False) + "\n")
+        tmp.write_text(json.dumps(finite(data), indent=indent, allow_nan=False) + "\n")
 
 
 def finite(obj: Any) -> Any:

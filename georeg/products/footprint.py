@@ -13,7 +13,6 @@ pushbroom's wavy edges are kept. The polygon therefore lies half a pixel inside 
 
 from __future__ import annotations
 
-import json
 import os
 from typing import Any
 from xml.sax.saxutils import escape
@@ -21,7 +20,7 @@ from xml.sax.saxutils import escape
 import numpy as np
 import pyproj
 
-from georeg.io.atomic import atomic_path, finite, write_text
+from georeg.io.atomic import write_json, write_text
 
 CORNER_NAMES = ("line0/sample0", "line0/last sample", "last line/last sample", "last line/sample0")
 
@@ -156,7 +155,6 @@ def write_footprint(
 ) -> dict[str, Any]:
     """Write both files atomically; returns the GeoJSON feature's properties."""
     gj = footprint_geojson(x, y, crs_wkt, properties)
-    with atomic_path(out_geojson) as tmp:
-        tmp.write_text(json.dumps(finite(gj), indent=1, allow_nan=False) + "\n")
+    write_json(out_geojson, gj, indent=1)
     write_text(out_kml, footprint_kml(x, y, crs_wkt, name))
     return gj["features"][0]["properties"]

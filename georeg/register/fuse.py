@@ -454,7 +454,7 @@ def decide(
     why = str(fused.get("reason") or "not registered")
     parts = [{**p, "accepted": False, "refused": why} if p.get("accepted") else p for p in parts]
     log.info("the verifier refused the accepted candidates (%s): %s run", why, ", ".join(skipped))
-    parts, split, ran, t2 = run_sources(q, view, parts, conf, (recs, ran))
+    parts, split, ran, t2 = run_sources(q, view, parts, conf, (recs, ran), blank=blank)
     split.pop("sources_by_name")
     timings.update(t2)
     second: dict[str, Any] = {"refused": why, "sources": skipped}
