@@ -13,7 +13,8 @@ Unknown intrinsics (``camera: null``): the EXIF focal length of the file when it
 (``frame_exif``: 35 mm equivalent, focal length and focal-plane resolution, or focal length and
 the sensor width of a common drone camera; ``intrinsics.source`` = "exif", ``exif_tags``; refitted
 on the best pose's guided inliers, ``exif_focal_refine``, kept only if it verifies higher), else
-the focal length is searched in the coarse PnP over ``focal_factors`` x the image width and
+the focal length is searched in the coarse PnP over ``focal_factors`` x the image width (in
+turn, until one falls below a strong best) and
 refined on the render stage's inliers (``frame_focal``, ``focal_rounds``; ``focal`` in the
 record, with the fit's relative standard deviation: a nadir view of flat ground does not
 determine it); principal point at the centre, no distortion, in both cases.
@@ -30,6 +31,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from georeg.frames.coarse import DEFAULTS as COARSE_DEFAULTS
 from georeg.frames.coarse import INDEX_DEFAULTS, Coarse, coarse_index, coarse_locate
 from georeg.frames.direct import DEFAULTS as DIRECT_DEFAULTS
 from georeg.frames.direct import (
@@ -498,12 +500,15 @@ def localize_image(
         und = rgb
         gray = cv2.cvtColor(und, cv2.COLOR_RGB2GRAY)
         co, K = None, None
+        strong = 2 * int({**COARSE_DEFAULTS, **(c["coarse"] or {})}["min_inliers"])
         for fac in c["focal_factors"]:
             Kf, _ = camera_matrix(None, w, h, fac * w)
             r = run_coarse(gray, Kf, maps, c["coarse"])
             log.info("focal search: fx = %.0f px -> %s, %d inliers", fac * w, r.ok, r.inliers)
             if co is None or (r.ok and r.inliers > co.inliers):
                 co, K = r, Kf
+            elif co.ok and co.inliers >= strong:  # past the peak of a strong place (the coarse
+                break  # search's own stop): farther focals only fall
         dist = np.zeros(5)
         focal_note = "estimated (focal search in PnP)"
         timings["coarse_s"] = time.perf_counter() - t0
