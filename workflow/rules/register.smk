@@ -23,8 +23,6 @@ rule query_band:
         "logs/register/query_band/{name}.log",
     benchmark:
         "benchmarks/register/query_band/{name}.tsv"
-    priority: 20  # its chain's: at 0 it waited behind the frames' and video's jobs, and the
-    # register chain then ran last with one core idle (docs/BENCHMARKS.md "Default run time")
     threads: 1
     resources:
         mem_mb=2000,
