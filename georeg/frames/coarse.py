@@ -309,6 +309,12 @@ def plausible(R: np.ndarray, C: np.ndarray, xyz: np.ndarray) -> str:
     return ""
 
 
+def strong_inliers(conf: dict | None) -> int:
+    """The coarse PnP inliers that end a search (regions, or the focal candidates of an
+    unknown camera): twice ``min_inliers`` of ``conf`` over ``DEFAULTS``."""
+    return 2 * int({**DEFAULTS, **(conf or {})}["min_inliers"])
+
+
 def coarse_locate(gray: np.ndarray, K: np.ndarray, index, conf: dict | None = None,
                   dense: tuple | None = None) -> Coarse:  # fmt: skip
     """Candidate areas from the index, a nadir vote (area, heading, GSD) per tilt hypothesis,
@@ -428,7 +434,7 @@ def _search_regions(K: np.ndarray, index, c: dict, keys: list, hyps: list, regio
         for rec in here[: int(c["pnp_per_window"])]:
             if rec["votes"] >= 4:
                 verify(rec)
-        if best.ok and best.inliers >= 2 * min_inl:
+        if best.ok and best.inliers >= strong_inliers(c):
             break
         if time.perf_counter() - t0 > float(c["max_seconds"]):
             break
@@ -585,7 +591,7 @@ def coarse_index(gray: np.ndarray, K: np.ndarray, index, map_gsd: float, conf: d
         times["search_s"] += time.perf_counter() - t3
         for k in spent:
             spent[k] += res.budget.get(k, 0)
-        if res.ok and res.inliers >= 2 * int(c["min_inliers"]):
+        if res.ok and res.inliers >= strong_inliers(c):
             break
     res.budget = {"mode": "index", "window_m": round(win, 1), "stride_m": round(stride, 1),
                   "regions_ranked": ranked, "regions_budget": int(c["max_regions"]), **spent,

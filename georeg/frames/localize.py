@@ -31,8 +31,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from georeg.frames.coarse import DEFAULTS as COARSE_DEFAULTS
-from georeg.frames.coarse import INDEX_DEFAULTS, Coarse, coarse_index, coarse_locate
+from georeg.frames.coarse import INDEX_DEFAULTS, Coarse, coarse_index, coarse_locate, strong_inliers
 from georeg.frames.direct import DEFAULTS as DIRECT_DEFAULTS
 from georeg.frames.direct import (
     Matches,
@@ -500,7 +499,7 @@ def localize_image(
         und = rgb
         gray = cv2.cvtColor(und, cv2.COLOR_RGB2GRAY)
         co, K = None, None
-        strong = 2 * int({**COARSE_DEFAULTS, **(c["coarse"] or {})}["min_inliers"])
+        strong = strong_inliers(c["coarse"])
         for fac in c["focal_factors"]:
             Kf, _ = camera_matrix(None, w, h, fac * w)
             r = run_coarse(gray, Kf, maps, c["coarse"])
