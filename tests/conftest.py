@@ -18,18 +18,6 @@ SHARED_DATA = REPO.parent / "shared" / "data"
 NO_SLURM_CONF = "/dev/null"
 os.environ.setdefault("SLURM_CONF", NO_SLURM_CONF)
 
-# pytest-xdist's workers (pyproject.toml: two) share the machine's cores, and each worker's
-# libraries would start a thread per core (OpenCV's pthreads pool, OpenMP in faiss and torch,
-# OpenBLAS): 4 busy threads on 2 cores. Each worker gets its share, set before any of them loads
-# (the workflow runs a test starts inherit it; Snakemake sets OMP_NUM_THREADS per job itself).
-# Four of the longest test files on two workers: 416, 432 -> 378, 377 s (docs/BENCHMARKS.md
-# "Default run time").
-_WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
-if _WORKERS > 1:
-    _share = str(max(1, (os.cpu_count() or 1) // _WORKERS))
-    for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OPENCV_FOR_THREADS_NUM"):
-        os.environ.setdefault(_var, _share)
-
 
 def pytest_collection_modifyitems(config, items):
     """Long files first: the Slurm test (it mostly waits for the queue), then files with a `slow`
