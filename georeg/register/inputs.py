@@ -166,7 +166,7 @@ class _Checker:
         """``register.learned.enabled: true`` needs XFeat (``requirements-learned.txt``)."""
         if learned.get("enabled") is True and (why := xfeat_import_error()):
             self.add(f"register.learned.enabled: true, but XFeat does not import ({why}): "
-                     "pip install -r requirements-learned.txt, or set auto or false")
+                     "pip install -r requirements-learned.txt -c constraints.txt, or set auto or false")
 
     def frames(self, frames: Mapping[str, Any]) -> None:
         from PIL import Image, UnidentifiedImageError

@@ -1506,7 +1506,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
             return parts, {"ran": False, "reason": "disabled" if on is False else f"not installed ({why})"}
         if why:
             raise ConfigError(f"register.learned.enabled: true, but XFeat does not import ({why}): "
-                              "pip install -r requirements-learned.txt, or set auto or false")
+                              "pip install -r requirements-learned.txt -c constraints.txt, or set auto or false")
         rc = {**LEARNED, **rc}
     elif not on:
         return parts, {"ran": False, "reason": "disabled"}
