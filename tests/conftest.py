@@ -19,6 +19,20 @@ NO_SLURM_CONF = "/dev/null"
 os.environ.setdefault("SLURM_CONF", NO_SLURM_CONF)
 
 
+def pytest_report_header(config):
+    """The numerical libraries that differ from constraints.txt (the versions the suite last passed
+    with): a real-data test at its margin can fail on another OpenCV (5.1: three did)."""
+    from georeg.io.versions import differing, library_versions
+
+    have = library_versions()
+    other = differing(have)
+    if not other:
+        return "georeg: the libraries' versions as in constraints.txt"
+    return "georeg: NOT the tested versions (constraints.txt): " + ", ".join(
+        f"{k} {have[k]} (tested {v})" for k, v in other.items()
+    )
+
+
 def pytest_collection_modifyitems(config, items):
     """Long files first: the Slurm test (it mostly waits for the queue), then files with a `slow`
     test, then the rest, each file's tests in their order. With `--dist loadfile` and

@@ -19,6 +19,7 @@ import signal
 import subprocess
 import sys
 import time
+from importlib import metadata
 from pathlib import Path
 
 import numpy as np
@@ -254,6 +255,7 @@ def test_repeatable_registration_and_versions_in_report(runs):
         ra = json.loads((a / f"results/queries/{name}/registration.json").read_text())
         rb = json.loads((b / f"results/queries/{name}/registration.json").read_text())
         assert _strip(ra) == _strip(rb)
+        assert ra["software"]["opencv-python-headless"] == metadata.version("opencv-python-headless")
     html = (a / "results/report/index.html").read_text()
     assert "software versions" in html
     for pkg in ("numpy", "opencv-python-headless", "faiss-cpu", "GDAL", "PROJ", "snakemake"):

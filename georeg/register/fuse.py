@@ -611,6 +611,7 @@ def run_fuse_parts(
     from pathlib import Path
 
     from georeg.io.atomic import write_json
+    from georeg.io.versions import library_versions
     from georeg.map.grid import ground_aspect
     from georeg.register.band import feature_scales, read_query_bands
     from georeg.register.geolocation import evaluate, write_geolocation
@@ -707,6 +708,7 @@ def run_fuse_parts(
         timings["evaluation"] = time.perf_counter() - t1
     timings["fuse_total"] = time.perf_counter() - t0
     reg["timings_s"] = timings
+    reg["software"] = library_versions()
     write_json(out_json, reg)
     return reg
 

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from georeg.io.atomic import write_text
+from georeg.io.versions import differing, library_versions
 from georeg.register.ortho_check import POLISHED_SOURCES
 from georeg.report.frames_html import frames_section
 from georeg.report.html_parts import cell, fmt, png_data_uri, table, td
@@ -512,36 +513,18 @@ def benchmark_table(rows: list[dict[str, str]]) -> str:
     )
 
 
-#: packages whose versions can change a result (the report states them)
-VERSIONED = (
-    "python", "georeg", "numpy", "scipy", "opencv-python-headless", "faiss-cpu", "rasterio",
-    "GDAL", "pyproj", "PROJ", "laspy", "lazrs", "open3d", "scikit-learn", "snakemake",
-)  # fmt: skip
-
-
-def library_versions() -> dict[str, str]:
-    """Version of each package in VERSIONED ('-' when absent); GDAL/PROJ as linked by rasterio."""
-    import platform
-    from importlib import metadata
-
-    out: dict[str, str] = {}
-    for name in VERSIONED:
-        if name == "python":
-            out[name] = platform.python_version()
-        elif name == "GDAL":
-            import rasterio
-
-            out[name] = rasterio.__gdal_version__
-        elif name == "PROJ":
-            import pyproj
-
-            out[name] = pyproj.proj_version_str
-        else:
-            try:
-                out[name] = metadata.version(name)
-            except metadata.PackageNotFoundError:
-                out[name] = "-"
-    return out
+def versions_table() -> str:
+    """The libraries' versions; where one differs from constraints.txt (the versions the suite and
+    the benchmarks were last run with), the tested one beside it and a note above."""
+    have = library_versions()
+    other = differing(have)
+    rows = [[td(k), td(v), td(other.get(k, ""))] for k, v in have.items()]
+    note = ""
+    if other:
+        note = ('<p class="note">not the tested versions (constraints.txt): '
+                + html.escape(", ".join(f"{k} {have[k]} (tested {v})" for k, v in other.items()))
+                + "; results at a decision's margin can differ.</p>")  # fmt: skip
+    return note + table(["package", "version", "tested (constraints.txt), where other"], rows)
 
 
 def config_yaml(config: Mapping[str, Any]) -> str:
@@ -640,7 +623,7 @@ def build_report(
         f"<details open><summary>config (YAML, defaults filled in)</summary>"
         f"<pre>{html.escape(config_yaml(config))}</pre></details>",
         '<h2 id="versions">software versions</h2>',
-        table(["package", "version"], [[td(k), td(v)] for k, v in library_versions().items()]),
+        versions_table(),
         "</main>",
     ]
     page = (
