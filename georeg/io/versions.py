@@ -61,5 +61,11 @@ def differing(versions: dict[str, str], path: str | Path = CONSTRAINTS) -> dict[
             if v != "-" and _norm(n) in pins and pins[_norm(n)] != v}  # fmt: skip
 
 
+def untested(versions: dict[str, str], path: str | Path = CONSTRAINTS) -> str:
+    """``name version (tested pinned), ...`` for each package of ``differing``; '' when none."""
+    other = differing(versions, path)
+    return ", ".join(f"{n} {versions[n]} (tested {v})" for n, v in other.items())
+
+
 def _norm(name: str) -> str:
     return re.sub(r"[-_.]+", "-", name).lower()

@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from georeg.io.atomic import write_text
-from georeg.io.versions import differing, library_versions
+from georeg.io.versions import differing, library_versions, untested
 from georeg.register.ortho_check import POLISHED_SOURCES
 from georeg.report.frames_html import frames_section
 from georeg.report.html_parts import cell, fmt, png_data_uri, table, td
@@ -522,8 +522,7 @@ def versions_table() -> str:
     note = ""
     if other:
         note = ('<p class="note">not the tested versions (constraints.txt): '
-                + html.escape(", ".join(f"{k} {have[k]} (tested {v})" for k, v in other.items()))
-                + "; results at a decision's margin can differ.</p>")  # fmt: skip
+                + html.escape(untested(have)) + "; results at a decision's margin can differ.</p>")  # fmt: skip
     return note + table(["package", "version", "tested (constraints.txt), where other"], rows)
 
 
