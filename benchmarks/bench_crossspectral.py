@@ -593,6 +593,7 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int, read_
         "second_pass": res.get("second_pass"),
         "rift": split.get("rift"),
         "learned": split.get("learned"),
+        "elevation": split.get("elevation"),
         "cfog_peaks": split.get("cfog_peaks"),
         "pose_source": res.get("pose_source"),
         "whole": split.get("whole_query_searched"),

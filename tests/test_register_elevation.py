@@ -64,3 +64,25 @@ def test_dsm_blanked_too_is_not_found(case):
     res = run(be._blank(z, q))
     assert not res["accepted"]
     assert "elevation" in [s["name"] for s in res["sources"]]
+
+
+@pytest.mark.slow
+def test_turn_at_the_edge_of_its_range_leaves_a_dsm_pose_where_it_is(shared_data):
+    """Brighton draw 13's third query on the map blanked over its place: the DSM source's pose is
+    1.0 px off, and the footprint's correlation with the DSM read as an image (0.002, a tenth of
+    an orthophoto's) rises to the 8 deg edge of the turn's range; turned there it was 16 px off
+    (a false accept, session 52). The edge is no peak: the pose stays, within 5 map px."""
+    if not (shared_data / "brighton" / "elevation.tif").exists():
+        pytest.skip("brighton absent")
+    be = load("bench_elevation")
+    bx = be.bx
+    gray, z, g, qs = be.queries("brighton", 3, 13)
+    q = qs[2]
+    sc = bx.Scene("brighton_ortho_test_edge", {}, g, be._blank(bx._stretch(gray), q), g, lambda p: p)
+    spec = {"pipeline": {"elevation": {"enabled": True}, "learned": {"enabled": False}}, "bands": 1}
+    res = bx.run_pipeline(q, sc, spec, 11, read_elevation=be.height_reader(z, g),
+                          elevation_id=f"test:edge:{float(np.nansum(z)):.3f}")  # fmt: skip
+    assert res["accepted"] and res["pose_source"] == "elevation", res["sources"]
+    turn = res["elevation"]["turn"]
+    assert turn["score"] is None and abs(turn["edge_deg"]) == 8.0, turn
+    assert bx.judge(q, sc, res)["error_px"] < 5.0

@@ -450,7 +450,8 @@ def test_pucallpa_near_miss_polished_on_the_orthophoto(shared_data):
 def test_turned_pose_is_brought_back_by_the_footprint_correlation():
     """A pose turned 5 deg about the query's centre and moved 2 px (a rift pose fit to a few
     cells) comes back within a map px of the truth (``rift.turned``: 1 deg steps, sub-px
-    offset); the true pose stays where it is."""
+    offset); the true pose stays where it is; one whose correlation peaks at the edge of the
+    range is not turned."""
     m = _scene(5, 480)
     q, truth = _query(m, (240.0, 230.0), 37.0, 160)
     to_map = np.array([[2.0, 0, 1], [0, -2, -1], [0, 0, 1]])  # map px (centres) -> x, y (_box_reader's)
@@ -480,6 +481,14 @@ def test_turned_pose_is_brought_back_by_the_footprint_correlation():
     assert np.array_equal(kept, to_map @ off) and rec["reason"], rec
     # off the orthophoto: nothing to turn to
     assert rift.turned(q, np.array([[2.0, 0, 1e6], [0, -2, -1e6], [0, 0, 1]]), read, {}, 8.0)[1] is None
+    # turned 12 deg, searched +-8: the correlation rises to the range's edge, which is no peak;
+    # the pose is left as it is (searched +-14 it comes back)
+    R12 = np.vstack([cv2.getRotationMatrix2D((0.0, 0.0), 12.0, 1.0), [0, 0, 1.0]])
+    far = to_map @ truth @ c @ R12 @ np.linalg.inv(c)
+    kept, rec = rift.turned(q, far, read, {}, 8.0)
+    assert np.array_equal(kept, far) and rec["score"] is None and rec["edge_deg"] == -8.0, rec
+    back, rec = rift.turned(q, far, read, {}, 14.0)
+    assert err(back) < 1.0 and abs(rec["deg"] + 12.0) <= 1.0, (err(back), rec)
 
 
 def test_a_query_of_few_cells_decides_nothing():

@@ -1120,9 +1120,12 @@ def turned(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, 
     ``found`` more anisotropic than ``TURN_MAX_ANISOTROPY`` on the window's grid (a search at a
     ground aspect, ``MapView.aspect``) is left as it is; else the turned pose is the similarity
     the correlation peaks at (the polish's affine refit, up to 13 % anisotropic on a square
-    grid, is noise there). Returns the pose and a record (None when the footprint misses the
-    orthophoto; ``deg``: the turn, ``moved_px``: the centre's move in orthophoto px,
-    ``score``)."""
+    grid, is noise there). A peak at the edge of the range is no peak (the correlation still
+    rises beyond it: on a map whose image is not the query's kind, brighton's DSM read as an image
+    against an optical query at 0.002, a tenth of an orthophoto's, the turn took a 1 px pose to
+    the 8 deg edge, 16 px off; session 52): the pose is left as it is. Returns the pose and a
+    record (None when the footprint misses the orthophoto; ``deg``: the turn, ``moved_px``: the
+    centre's move in orthophoto px, ``score``; ``edge_deg`` when not turned for that)."""
     from georeg.register import ortho_check
     from georeg.register.dense import window_u8
     from georeg.register.null_scan import fine_pose
@@ -1154,6 +1157,11 @@ def turned(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, 
                               max(1.0, TURN_BOX_PX * k))  # fmt: skip
     if not math.isfinite(score):
         return H, {"deg": 0.0, "moved_px": 0.0, "score": None}
+    if abs(a2 - angle) > float(turn_deg) - 0.5:  # the correlation still rising at the range's edge
+        log.info("turn: the correlation peaks at the range's edge (%+.0f deg, score %.4f): not turned",
+                 a2 - angle, score)  # fmt: skip
+        return H, {"deg": 0.0, "moved_px": 0.0, "score": None, "edge_deg": round(a2 - angle, 2),
+                   "reason": "the correlation peaks at the edge of the turn's range: not a peak"}
     H2 = np.linalg.inv(Ks @ P) @ S2
     c = np.array([(w - 1) / 2, (h - 1) / 2, 1.0])
     moved = float(np.linalg.norm((P @ H2 @ c)[:2] - (P @ H @ c)[:2]))  # orthophoto px
