@@ -425,8 +425,7 @@ def test_pucallpa_near_miss_polished_on_the_orthophoto(shared_data):
 
     u8 = next(iter(q.bands.values()))
     g = sc.map_gsd
-    truth = np.linalg.lstsq(np.c_[q.truth, np.ones(len(q.truth))], q.truth_map * [g, -g], rcond=None)[0].T
-    truth = np.vstack([truth, [0, 0, 1.0]])  # query px -> map x, y (the lon/lat map: an affinity)
+    truth = matching.affine_lsq(q.truth, q.truth_map * [g, -g])  # query px -> map x, y (lon/lat: affine)
 
     def err(H_map: np.ndarray) -> float:
         est = matching.apply_h(H_map, q.truth) / [g, -g]

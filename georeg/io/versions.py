@@ -61,9 +61,11 @@ def differing(versions: dict[str, str], path: str | Path = CONSTRAINTS) -> dict[
             if v != "-" and _norm(n) in pins and pins[_norm(n)] != v}  # fmt: skip
 
 
-def untested(versions: dict[str, str], path: str | Path = CONSTRAINTS) -> str:
-    """``name version (tested pinned), ...`` for each package of ``differing``; '' when none."""
-    other = differing(versions, path)
+def untested(versions: dict[str, str], other: dict[str, str] | None = None,
+             path: str | Path = CONSTRAINTS) -> str:  # fmt: skip
+    """``name version (tested pinned), ...`` for each package of ``differing`` (``other``: its
+    result when the caller has it already); '' when none."""
+    other = differing(versions, path) if other is None else other
     return ", ".join(f"{n} {versions[n]} (tested {v})" for n, v in other.items())
 
 

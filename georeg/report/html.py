@@ -522,7 +522,7 @@ def versions_table() -> str:
     note = ""
     if other:
         note = ('<p class="note">not the tested versions (constraints.txt): '
-                + html.escape(untested(have)) + "; results at a decision's margin can differ.</p>")  # fmt: skip
+                + html.escape(untested(have, other)) + "; results at a decision's margin can differ.</p>")  # fmt: skip
     return note + table(["package", "version", "tested (constraints.txt), where other"], rows)
 
 
