@@ -123,13 +123,15 @@ def make_case(city: str, reverse: bool, theta: float, out: Path,
             **{k: {"image": str(out / f"{k}.tif"), "gsd_m": 20.0, "truth": truth} for k in ("b11", "b12")}}  # fmt: skip
 
 
-def run_workflow(work: Path, map_entry: dict[str, Any], queries: dict[str, Any]) -> dict[str, Any]:
-    """``snakemake --cores 2`` in ``work`` with the map and ``queries``: each one's outcome."""
+def run_workflow(work: Path, map_entry: dict[str, Any], queries: dict[str, Any],
+                 extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    """``snakemake --cores 2`` in ``work`` with the map and ``queries`` (and ``extra`` keys, e.g.
+    ``register``): each one's outcome."""
     import yaml
 
     work.mkdir(parents=True, exist_ok=True)
     cfg = work / "config.yaml"
-    cfg.write_text(yaml.safe_dump({"map": map_entry, "queries": queries, "frames": {}}))
+    cfg.write_text(yaml.safe_dump({**(extra or {}), "map": map_entry, "queries": queries, "frames": {}}))
     t0 = time.perf_counter()
     cmd = [sys.executable, "-m", "snakemake", "-s", str(ROOT / "Snakefile"), "-d", str(work),
            *[f"results/queries/{q}/registration.json" for q in queries],
@@ -205,7 +207,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--crop", type=float, default=0.0,
                     help="a part of the city: each query cut to this fraction of each side (at least "
                          "MIN_CROP_PX), at a random place (0: the whole scene)")
+    ap.add_argument("--config", default="",
+                    help="a YAML file of extra configuration keys for every run (e.g. register: ...)")
     a = ap.parse_args(argv)
+    extra = None
+    if a.config:
+        import yaml
+
+        extra = yaml.safe_load(Path(a.config).read_text()) or {}
     if not OSCD.is_dir():
         print(f"no development data at {OSCD}", file=sys.stderr)
         return 1
@@ -237,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
         queries = {"q": made[name]["query"], "b11": made[name]["b11"], "b12": made[name]["b12"],
                    **{f"other_{o}": {k: v for k, v in made[o]["query"].items() if k != "truth"}
                       for o in others}}  # fmt: skip
-        res = run_workflow(work / "runs" / name, made[name]["map"], queries)
+        res = run_workflow(work / "runs" / name, made[name]["map"], queries, extra)
         for key, r in res.items():
             positive = not key.startswith("other")
             s = (sift_plain(work / "runs" / name, key, queries[key].get("truth"))

@@ -92,7 +92,11 @@ DEFAULTS: dict[str, Any] = {
     "exact_max": 2e6,  # query x map descriptor products above which the search is approximate
     "nprobe": 64,  # approximate search: inverted lists visited (faiss IVF, 4 sqrt(n) lists)
     "seed": 0,  # the approximate index's k-means
-    "max_upsample": 1.5,  # query enlarged at most this much to the map's GSD, else the map shrunk
+    "max_upsample": 2.5,  # query enlarged at most this much to the map's GSD, else the map shrunk:
+    # a 20 m Sentinel-2 SWIR query on its 10 m RGB (2x; the map warped to UTM 9.8-10.8 m) is
+    # searched at 10 m, where a part of a city has enough 36 px cells (Sentinel-2 cities cut to
+    # 0.35 of each side, pooled bands: 4/6; 2/4 and 3/6; 2/4 -> 6/6; 3/4 and 6/6; 4/4, 0 false;
+    # session 53); 1.5 before (session 13: a 90 m map kept unshrunk for a 1.16x coarser query)
     "max_map_px": 32_000_000,  # the source is not run on larger maps (at the query's GSD)
 }
 
