@@ -214,7 +214,14 @@ def main(argv: list[str] | None = None) -> int:
     if a.config:
         import yaml
 
-        extra = yaml.safe_load(Path(a.config).read_text()) or {}
+        try:
+            extra = yaml.safe_load(Path(a.config).read_text()) or {}
+        except (OSError, yaml.YAMLError) as e:
+            print(f"--config {a.config}: cannot be read as YAML ({e})", file=sys.stderr)
+            return 1
+        if not isinstance(extra, dict):
+            print(f"--config {a.config}: not a mapping of configuration keys", file=sys.stderr)
+            return 1
     if not OSCD.is_dir():
         print(f"no development data at {OSCD}", file=sys.stderr)
         return 1
