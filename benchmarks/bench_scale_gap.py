@@ -159,11 +159,63 @@ def build(gap: float, per_scene: int, puc_pairs: int, seed: int, synthetic: list
     return scenes, qs + neg
 
 
+def map_inside(sc: bx.Scene, q: bx.Query, side_frac: float, gap: float) -> bx.Scene:
+    """The map of ``sc`` cut to a square of ``side_frac`` of its smaller side centred on ``q``'s
+    true place (clipped to the map) and upsampled by ``gap``; ``q`` now points at it, its truth
+    kept where that map is (outside it a pose only extrapolates)."""
+    h, w = sc.map_gray.shape
+    s = int(side_frac * min(h, w))
+    c = np.mean(q.truth_map, axis=0)
+    c0, r0 = int(np.clip(c[0] - s / 2, 0, w - s)), int(np.clip(c[1] - s / 2, 0, h - s))
+    off = np.array([c0, r0], float)
+    to_map0 = sc.to_map
+    win = bx.Scene(f"{q.name}_map", {}, sc.swir_gsd, sc.map_gray[r0 : r0 + s, c0 : c0 + s].copy(),
+                   sc.map_gsd, lambda p: to_map0(p) - off, sc.city)  # fmt: skip
+    up = upsampled(win, gap)
+    tm = (q.truth_map - off + 0.5) * (gap * sc.map_gsd / sc.swir_gsd) - 0.5
+    keep = ((tm >= 0) & (tm <= np.array(up.map_gray.shape[::-1]) - 1)).all(axis=1)
+    q.truth, q.truth_map = q.truth[keep], tm[keep]
+    q.map_scene = q.scene = up.name
+    return up
+
+
+def build_map_inside(gap: float, puc_pairs: int, seed: int, frac: float,
+                     inside: float) -> tuple[list[bx.Scene], list[bx.Query]]:  # fmt: skip
+    """``--map-inside``: the map smaller than the query (a local orthophoto, a wide satellite
+    scene). Per scene one query of ``frac`` of its side, the map a window of ``inside`` of the
+    side around the query's place, upsampled by the gap; unrelated: each query against the
+    window map of another city of its half."""
+    base = bx.all_scenes() + pucallpa_scenes(puc_pairs)
+    rng = np.random.default_rng(seed)
+    scenes, qs = [], []
+    for i, sc in enumerate(base):
+        q = bx.make_query(sc, rng, i, max(frac, 0.7) if sc.city == "potsdam" else frac)
+        up = map_inside(sc, q, inside, gap)
+        q.half = half(sc)  # type: ignore[attr-defined]
+        scenes.append(up)
+        qs.append(q)
+    neg = []
+    for k, q in enumerate(qs):
+        city = base[k].city.split("_")[0]
+        others = [j for j in list(range(k + 1, len(qs))) + list(range(k))
+                  if base[j].city.split("_")[0] != city and half(base[j]) == q.half]  # type: ignore[attr-defined]  # fmt: skip
+        n = bx.Query(q.name + "_vs_" + scenes[others[1 % len(others)]].name, q.scene,
+                     scenes[others[1 % len(others)]].name, q.bands, q.gsd, None, None)  # fmt: skip
+        n.half = q.half  # type: ignore[attr-defined]
+        neg.append(n)
+    for q in qs + neg:
+        q.tol_px = gap  # type: ignore[attr-defined]
+    return scenes, qs + neg
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--gap", type=float, default=8.0)
     ap.add_argument("--per-scene", type=int, default=1)
     ap.add_argument("--frac", type=float, default=0.5, help="query side / scene side")
+    ap.add_argument("--map-inside", type=float, default=0.0,
+                    help="the map a window of this fraction of the scene side around the query "
+                    "(--frac of the side: the map smaller than the query); 0 = the whole scene")
     ap.add_argument("--puc-pairs", type=int, default=8, help="Pucallpa date pairs (of 28)")
     ap.add_argument("--methods", default="sift_plain,wf_default")
     ap.add_argument("--half", choices=("tuning", "checking", "both"), default="both")
@@ -206,7 +258,10 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     cv2.setNumThreads(1)
     syn = [d for d in a.synthetic.split(",") if d]
-    scenes, queries = build(a.gap, a.per_scene, a.puc_pairs, a.seed, syn, a.frac)
+    if a.map_inside:
+        scenes, queries = build_map_inside(a.gap, a.puc_pairs, a.seed, a.frac, a.map_inside)
+    else:
+        scenes, queries = build(a.gap, a.per_scene, a.puc_pairs, a.seed, syn, a.frac)
     if a.half != "both":
         queries = [q for q in queries if q.half == a.half]  # type: ignore[attr-defined]
     if a.positives_only:

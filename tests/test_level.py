@@ -97,3 +97,24 @@ def test_landsat_swir_30m_on_a_map_8x_finer_registers_and_not_on_another_city(sh
     neg_map = bx.Scene("abudhabi_375", {}, 30.0, np.clip(m, 1, 255), 3.75, lambda p: p, "abudhabi")
     neg = bx.Query(q.name + "_vs_abudhabi", sc.name, neg_map.name, q.bands, q.gsd, None, None)
     assert not bx.run_method(neg, neg_map, spec, 11)["accepted"]
+
+
+def test_a_map_smaller_than_the_query_is_found_by_rift_at_twice_the_level(shared_data):
+    """Hong Kong: a Sentinel-2 SWIR query (20 m band, rescaled) whose map is a 1.6 km window of
+    the other date's visible image upsampled to 2.5 m (8x finer than the band), inside the
+    query's footprint (a fifth of it):
+    rift searches the map at half the level's GSD (the query enlarged 2x: ``MapView.read_gsd``),
+    where the overlap holds enough of its cells, and finds the place within one query pixel
+    where the map is; at the level's GSD it found nothing (session 54)."""
+    sg = _bench()
+    bx = sg.bx
+    sc = bx.s2_scene("hongkong")
+    q = bx.make_query(sc, np.random.default_rng(11), 0, 0.6)
+    up = sg.map_inside(sc, q, 0.3, 8.0)
+    q.tol_px = 8.0
+    spec = {"pipeline": {}, "bands": "auto"}
+    res = bx.run_method(q, up, spec, 11)
+    j = sg.dv.judge(q, up, res)
+    assert j["outcome"] == "success" and res["pose_source"] == "rift", (j, res["sources"])
+    assert res["level"]["gsd"] == pytest.approx(q.gsd)
+    assert (res["rift"] or {}).get("working_gsd") == pytest.approx(q.gsd / 2)

@@ -96,7 +96,10 @@ DEFAULTS: dict[str, Any] = {
     # a 20 m Sentinel-2 SWIR query on its 10 m RGB (2x; the map warped to UTM 9.8-10.8 m) is
     # searched at 10 m, where a part of a city has enough 36 px cells (Sentinel-2 cities cut to
     # 0.35 of each side, pooled bands: 4/6; 2/4 and 3/6; 2/4 -> 6/6; 3/4 and 6/6; 4/4, 0 false;
-    # session 53); 1.5 before (session 13: a 90 m map kept unshrunk for a 1.16x coarser query)
+    # session 53); 1.5 before (session 13: a 90 m map kept unshrunk for a 1.16x coarser query).
+    # A query coarser still is enlarged by this much, at most to what the view reads
+    # (``working_gsd``: a map level's windows, 2x finer than the query; a map smaller than the
+    # query, 8x finer: 3 -> 6 of 15 registered, 0 unrelated accepted; session 54)
     "max_map_px": 32_000_000,  # the source is not run on larger maps (at the query's GSD)
 }
 
@@ -1434,7 +1437,7 @@ def _search(gsd: float, u8: np.ndarray, view: Any, b: tuple[float, ...], c: dict
            "map_keypoints": len(mxy), "nearest_k": n_candidates(len(md), c), "confirm": r.get("confirm"), "rescue": r.get("rescue"),
            "reangle": r.get("reangle"), "reason": f"fewer than min_cells ({c['min_cells']}) matched cells at every rotation"
            if r["decision"] is None else r["decision"].get("reason", ""), "aspect": round(aspect, 4),
-           "gsd": gsd}  # fmt: skip
+           "gsd": gsd, "working_gsd": g}  # fmt: skip
     if max_scale > 1:  # the guess, and the GSD the pose found (its scale free)
         rec["guess"] = gsd
         rec["gsd"] = gsd if H is None else math.sqrt(abs(np.linalg.det(H[:2, :2])))
@@ -1485,10 +1488,12 @@ def _verify(r: dict[str, Any], H: np.ndarray | None, rec: dict[str, Any], u8: np
 
 
 def working_gsd(gsd: float, view: Any, c: dict[str, Any]) -> float:
-    """The map's working GSD for a query of ``gsd``: the map's feature GSD (the query resampled to
-    it), or the query's own when that is more than ``max_upsample`` coarser (the map shrunk)."""
-    g = float(view.source.gsd_m)
-    return float(gsd) if float(gsd) > c["max_upsample"] * g else g
+    """The map's working GSD for a query of ``gsd``: the finest the view reads (the map's feature
+    GSD, or a map level's ``view.read_gsd``; the query resampled to it), or, for a query more
+    than ``max_upsample`` coarser than that, ``max_upsample`` finer than the query's (the query
+    enlarged by that much, the map shrunk to it)."""
+    g = float(view.read_gsd or view.source.gsd_m)
+    return max(g, float(gsd) / float(c["max_upsample"]))
 
 
 def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],

@@ -147,9 +147,9 @@ def map_for_query(
     location prior (``clip_to_prior``), and, when the query is much coarser than the map's
     features (``register.level``), that map's orthophoto averaged to the query's GSD and its
     features (``georeg.register.level``) with the query at factor 1; the dense sources and checks
-    then read the orthophoto at that level too (``level.window_reader``: the null scan, the
-    small-query windows and the orthophoto check shrink the map to about the query's GSD
-    anyway). ``ortho_id`` / ``cache_dir`` / ``aspect`` / ``read_elevation`` / ``elevation_id``:
+    then read the orthophoto ``level.WINDOW_FINER`` finer than that level (``level.window_reader``:
+    the null scan, the small-query windows and the orthophoto check shrink the map to about the
+    query's GSD anyway; rift searches at that finer GSD, ``MapView.read_gsd``). ``ortho_id`` / ``cache_dir`` / ``aspect`` / ``read_elevation`` / ``elevation_id``:
     ``MapView``'s. Returns (view, factors, the level's
     record or None when no level was asked for)."""
     source = clip_to_prior(source, prior, width, height, gsd_m, factors)
@@ -171,6 +171,7 @@ def map_for_query(
                          scale=feats["scale"], clip=source.clip, settings=source.features_conf),
         read_window=None if read_window is None
         else level.window_reader(read_level, g / level.WINDOW_FINER),
+        read_gsd=g / level.WINDOW_FINER,
     )  # fmt: skip
     return out, [float(gsd_m) / g], rec
 
@@ -281,7 +282,9 @@ class MapView:
     rift's map-wide search (``rift.source``) searches it beside the square pixel.
     ``read_elevation`` / ``elevation_id``: the map's DSM, read and keyed like the orthophoto
     (None: no elevation), which the ``elevation`` source matches as an image
-    (``rift.elevation_source``)."""
+    (``rift.elevation_source``). ``read_gsd``: the pixel size ``read_window`` reads at when it is
+    not the features' (a map level's windows are read ``level.WINDOW_FINER`` finer), the finest
+    rift's search works at (``rift.working_gsd``)."""
 
     source: MapSource
     read_window: Any = None
@@ -290,6 +293,7 @@ class MapView:
     aspect: float = 1.0
     read_elevation: Any = None
     elevation_id: str | None = None
+    read_gsd: float | None = None
 
 
 SPLIT_DEFAULTS: dict[str, Any] = {
