@@ -70,6 +70,25 @@ def test_a_level_too_large_is_refused_with_the_reason_and_the_index_is_kept():
     assert "max_mpx" in rec["reason"] and "prior" in rec["reason"]
 
 
+def test_rift_searches_a_level_at_its_windows_gsd_unless_the_map_is_too_large_there():
+    """A map level's windows are read 2x finer than the query: rift works there (the query
+    enlarged 2x), at the level's own GSD when the map at the finer one exceeds
+    ``rift.max_map_px``; without a level at the map's GSD or ``max_upsample`` finer than the
+    query's."""
+    from georeg.register import rift
+    from georeg.register.search import MapView
+
+    xy = np.array([[0.0, 0.0], [6000.0, -6000.0]])  # 6 km a side
+    src = MapSource(xy, np.zeros((2, 128), np.float32), 30.0)
+    c = rift.rift_conf({})
+    level_view = MapView(src, read_gsd=15.0)
+    assert rift.working_gsd(30.0, level_view, c) == 15.0
+    assert rift.working_gsd(30.0, level_view, {**c, "max_map_px": 100_000}) == 30.0
+    plain = MapView(MapSource(xy, np.zeros((2, 128), np.float32), 3.75))
+    assert rift.working_gsd(30.0, plain, c) == pytest.approx(12.0)
+    assert rift.working_gsd(7.5, plain, c) == 3.75
+
+
 def _bench():
     return benchmark_module.load("bench_scale_gap")
 

@@ -98,8 +98,9 @@ DEFAULTS: dict[str, Any] = {
     # 0.35 of each side, pooled bands: 4/6; 2/4 and 3/6; 2/4 -> 6/6; 3/4 and 6/6; 4/4, 0 false;
     # session 53); 1.5 before (session 13: a 90 m map kept unshrunk for a 1.16x coarser query).
     # A query coarser still is enlarged by this much, at most to what the view reads
-    # (``working_gsd``: a map level's windows, 2x finer than the query; a map smaller than the
-    # query, 8x finer: 3 -> 6 of 15 registered, 0 unrelated accepted; session 54)
+    # (``working_gsd``: a map level's windows, 2x finer than the query; a map 8x finer and a fifth
+    # of the query's footprint: 3/12; 1/11 -> 9/12; 6/11 within a query px, 0/23 unrelated;
+    # session 54)
     "max_map_px": 32_000_000,  # the source is not run on larger maps (at the query's GSD)
 }
 
@@ -1489,11 +1490,17 @@ def _verify(r: dict[str, Any], H: np.ndarray | None, rec: dict[str, Any], u8: np
 
 def working_gsd(gsd: float, view: Any, c: dict[str, Any]) -> float:
     """The map's working GSD for a query of ``gsd``: the finest the view reads (the map's feature
-    GSD, or a map level's ``view.read_gsd``; the query resampled to it), or, for a query more
-    than ``max_upsample`` coarser than that, ``max_upsample`` finer than the query's (the query
-    enlarged by that much, the map shrunk to it)."""
-    g = float(view.read_gsd or view.source.gsd_m)
-    return max(g, float(gsd) / float(c["max_upsample"]))
+    GSD, or a map level's ``view.read_gsd`` while the map there stays within ``max_map_px``; the
+    query resampled to it), or, for a query more than ``max_upsample`` coarser than that,
+    ``max_upsample`` finer than the query's (the query enlarged by that much, the map shrunk)."""
+    lo = float(gsd) / float(c["max_upsample"])
+    g = max(float(view.source.gsd_m), lo)
+    if view.read_gsd:
+        b = view.source.bounds
+        fine = max(float(view.read_gsd), lo)
+        if (b[2] - b[0]) * (b[3] - b[1]) / fine**2 <= c["max_map_px"]:
+            return fine
+    return g
 
 
 def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
