@@ -87,11 +87,12 @@ def test_weak_chance_pose_of_another_city_is_refused_by_its_structure(shared_dat
     structure agrees at z 2.41, above ``structure_z_min`` 2.2 but below the 2.75 a weak pose
     (log10 NFA above -6) needs: ``not_found``. (With B12 pooled, rift's best pose there is
     another one, refused by the guided confirmation.) The chance pose arises with the map
-    shrunk to the query's 20 m (``rift.max_upsample`` 1.5, the default before session 53); at
-    the default 2.5 rift searches the 10 m map and its best pose there is far weaker (log10 NFA
-    +6.6): that setting is pinned so the structure check meets a real chance pose."""
+    shrunk to the query's 20 m (before session 53; ``rift.max_upsample`` 1 keeps it there since
+    session 54); at the default 2.5 rift searches the 10 m map and its best pose there is far
+    weaker (log10 NFA +6.6): that setting is pinned so the structure check meets a real chance
+    pose."""
     res = _city_run(shared_data, tmp_path, "abudhabi", None, "norcia", 53.25339044788414, "b11",
-                    {"register": {"rift": {"max_upsample": 1.5}}})
+                    {"register": {"rift": {"max_upsample": 1.0}}})
     assert res["other"]["status"] == "not_found", res["other"]
     reg = json.loads((tmp_path / "run/results/queries/other/registration.json").read_text())
     rift = reg["split"]["rift"]
