@@ -71,10 +71,10 @@ def test_a_level_too_large_is_refused_with_the_reason_and_the_index_is_kept():
 
 
 def test_rift_searches_a_level_at_its_windows_gsd_unless_the_map_is_too_large_there():
-    """A map level's windows are read 2x finer than the query: rift works there (the query
-    enlarged 2x), at the level's own GSD when the map at the finer one exceeds
-    ``rift.max_map_px``; without a level at the map's GSD or ``max_upsample`` finer than the
-    query's."""
+    """A map level's windows are read 2x finer than the query: on a map no larger than the
+    query's footprint rift works there (the query enlarged 2x), at the level's own GSD when the
+    map is larger than the query or the map at the finer GSD exceeds ``rift.max_map_px``;
+    without a level at the map's GSD or ``max_upsample`` finer than the query's."""
     from georeg.register import rift
     from georeg.register.search import MapView
 
@@ -82,8 +82,9 @@ def test_rift_searches_a_level_at_its_windows_gsd_unless_the_map_is_too_large_th
     src = MapSource(xy, np.zeros((2, 128), np.float32), 30.0)
     c = rift.rift_conf({})
     level_view = MapView(src, read_gsd=15.0)
-    assert rift.working_gsd(30.0, level_view, c) == 15.0
-    assert rift.working_gsd(30.0, level_view, {**c, "max_map_px": 100_000}) == 30.0
+    assert rift.working_gsd(30.0, level_view, c, 200 * 200) == 15.0  # 6 km of query
+    assert rift.working_gsd(30.0, level_view, c, 199 * 199) == 30.0  # a map larger than it
+    assert rift.working_gsd(30.0, level_view, {**c, "max_map_px": 100_000}, 200 * 200) == 30.0
     plain = MapView(MapSource(xy, np.zeros((2, 128), np.float32), 3.75))
     assert rift.working_gsd(30.0, plain, c) == pytest.approx(12.0)
     assert rift.working_gsd(7.5, plain, c) == 3.75

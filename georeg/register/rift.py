@@ -1418,7 +1418,7 @@ def _search(gsd: float, u8: np.ndarray, view: Any, b: tuple[float, ...], c: dict
     """One ``register`` of the query, taken at ``gsd`` map units a pixel, against the map's
     features on the working grid of pixel ``aspect``: the result, its pose (query px -> map) and
     record (None: map unreadable)."""
-    g = working_gsd(gsd, view, c)
+    g = working_gsd(gsd, view, c, u8.shape[-2] * u8.shape[-1])
     got = cached_map_features(view, b, g, c, aspect)
     if got is None:
         return {}, None, None
@@ -1488,17 +1488,20 @@ def _verify(r: dict[str, Any], H: np.ndarray | None, rec: dict[str, Any], u8: np
     return H
 
 
-def working_gsd(gsd: float, view: Any, c: dict[str, Any]) -> float:
-    """The map's working GSD for a query of ``gsd``: the finest the view reads (the map's feature
-    GSD, or a map level's ``view.read_gsd`` while the map there stays within ``max_map_px``; the
-    query resampled to it), or, for a query more than ``max_upsample`` coarser than that,
-    ``max_upsample`` finer than the query's (the query enlarged by that much, the map shrunk)."""
+def working_gsd(gsd: float, view: Any, c: dict[str, Any], query_px: int = 0) -> float:
+    """The map's working GSD for a query of ``gsd`` and ``query_px`` pixels: the map's feature
+    GSD (the query resampled to it), or, for a query more than ``max_upsample`` coarser, that
+    much finer than the query's (the query enlarged, the map shrunk). On a map level
+    (``view.read_gsd``: its windows' finer GSD) no larger than the query's footprint, where the
+    level's GSD leaves few cells, the level's windows' GSD instead, while the map there stays
+    within ``max_map_px`` (a larger map costs 2-3x there and gained nothing; session 54)."""
     lo = float(gsd) / float(c["max_upsample"])
     g = max(float(view.source.gsd_m), lo)
-    if view.read_gsd:
-        b = view.source.bounds
+    b = view.source.bounds
+    area = (b[2] - b[0]) * (b[3] - b[1])
+    if view.read_gsd and area <= query_px * float(gsd) ** 2:
         fine = max(float(view.read_gsd), lo)
-        if (b[2] - b[0]) * (b[3] - b[1]) / fine**2 <= c["max_map_px"]:
+        if area / fine**2 <= c["max_map_px"]:
             return fine
     return g
 
@@ -1541,7 +1544,8 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     image = "DSM" if key == "elevation" else "orthophoto"  # what ``view.read_window`` reads
     why = f"no {image}" if view.read_window is None else ""
     b = tuple(float(v) for v in view.source.bounds)
-    g = min(working_gsd(v, view, c) for v in gsds)
+    n_px = q.primary.size
+    g = min(working_gsd(v, view, c, n_px) for v in gsds)
     if not why and (b[2] - b[0]) * (b[3] - b[1]) / g**2 > c["max_map_px"]:
         why = f"map larger than max_map_px ({c['max_map_px']:.0f}) at the query's GSD"
     if why:
@@ -1556,7 +1560,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     runs = [(v, k) for v in gsds for k in aspects]
     max_scale = GUESS_SCALE if guessed else 1.0
     # each search's tests: rotations x fits x (1 + the vote regions on a large map)
-    n_vote = {v: n_votes((b[2] - b[0]) * (b[3] - b[1]) / working_gsd(v, view, c) ** 2, c) for v in gsds}
+    n_vote = {v: n_votes((b[2] - b[0]) * (b[3] - b[1]) / working_gsd(v, view, c, n_px) ** 2, c) for v in gsds}
     tests = {(v, k): int(c["rotations"]) * len(fits(max_scale)) * (1 + n_vote[v]) for v, k in runs}
     strong = float(c["log_nfa_max"]) - float(c["null_margin"])
     passes = []
