@@ -70,6 +70,25 @@ def test_a_level_too_large_is_refused_with_the_reason_and_the_index_is_kept():
     assert "max_mpx" in rec["reason"] and "prior" in rec["reason"]
 
 
+def test_a_level_without_features_leaves_the_index_to_search_with_the_reason():
+    """A map a few query pixels wide (or featureless) has no SIFT features at the query's GSD:
+    the level is not used (the record says why) and the index's features are searched, instead
+    of an empty map failing further on (found by the map-inside scale-gap set, session 55)."""
+    rng = np.random.default_rng(0)
+    gray = cv2.GaussianBlur(rng.integers(1, 255, (400, 400)).astype(np.uint8), (0, 0), 2)
+    src = _map_source(gray, 1.0)
+    flat = np.full((400, 400), 128, np.uint8)
+
+    def read_level(b, g):  # the map averaged to g: a flat image
+        n = max(1, round(400 / g))
+        return cv2.resize(flat, (n, n), interpolation=cv2.INTER_AREA), np.array(
+            [[g, 0, b[0] + g / 2], [0, -g, b[3] - g / 2], [0, 0, 1.0]])
+
+    view, factors, rec = map_for_query(src, None, 50, 50, 8.0, [8.0], {}, None, read_level)
+    assert view.source is src and factors == [8.0] and view.read_gsd is None
+    assert rec is not None and "no features" in rec["reason"]
+
+
 def test_rift_searches_a_level_at_its_windows_gsd_unless_the_map_is_too_large_there():
     """A map level's windows are read 2x finer than the query: on a map no larger than the
     query's footprint rift works there (the query enlarged 2x), at the level's own GSD when the

@@ -55,7 +55,7 @@ def level_features(
 ) -> tuple[dict[str, np.ndarray] | None, dict[str, Any]]:  # fmt: skip
     """SIFT features of the orthophoto over ``bounds`` at pixels of ``gsd``: xy (map), desc,
     angle (deg), scale (keypoint diameter, map units); None when the level would exceed
-    ``max_mpx`` or the map cannot be read. Returns (features, record)."""
+    ``max_mpx``, the map cannot be read or holds no features there. Returns (features, record)."""
     t0 = time.perf_counter()
     w, h = (bounds[2] - bounds[0]) / gsd, (bounds[3] - bounds[1]) / gsd
     rec: dict[str, Any] = {"gsd": gsd, "width": math.ceil(w), "height": math.ceil(h)}
@@ -69,6 +69,9 @@ def level_features(
         return None, rec
     gray, A = got
     f = detect_and_describe(gray, gray > 0, features_conf or {})
+    if len(f) == 0:  # a map a few query pixels wide, or featureless: the index searches instead
+        rec["reason"] = f"no features in the map at {gsd:g} map units ({gray.shape[1]} x {gray.shape[0]} px)"
+        return None, rec
     px = f.xy.astype(np.float64)
     xy = px @ A[:2, :2].T + A[:2, 2]
     unit = math.sqrt(abs(np.linalg.det(A[:2, :2])))
