@@ -48,6 +48,9 @@ METHODS: dict[str, dict[str, Any]] = {
     # the workflow default followed by its refinement stage at the map's full resolution (rule
     # refine_registration; item 5's "then refined at full resolution"), judged on the refined grid
     "wf_default_refined": {"pipeline": {}, "bands": "auto", "refine": {}},
+    # roles reversed (``swapped``): the map at the query's GSD searched in the query image, by
+    # the workflow default; a probe of a source not built yet (session 55), primary band only
+    "wf_swapped": {"pipeline": {}, "bands": 1},
 }
 
 
@@ -179,6 +182,25 @@ def map_inside(sc: bx.Scene, q: bx.Query, side_frac: float, gap: float) -> bx.Sc
     return up
 
 
+def swapped(q: bx.Query, sc: bx.Scene) -> tuple[bx.Query, bx.Scene, float]:
+    """``q`` on ``sc`` with the roles reversed: the map averaged to the query's GSD as the query,
+    the query's primary band as the map (its pixels the map units); truth the same points the
+    other way. Returns (query, map scene, map px of ``sc`` per query px: errors scale by it)."""
+    f = sc.map_gsd / q.gsd  # reversed query px per map px
+    h, w = sc.map_gray.shape
+    size = (max(8, round(w * f)), max(8, round(h * f)))
+    valid = cv2.resize((sc.map_gray > 0).astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    img = cv2.resize(sc.map_gray.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    small = np.where(valid > 0.99, np.clip(img, 1, 255), 0).round().astype(np.uint8)
+    band = next(iter(q.bands.values()))
+    qmap = bx.Scene(f"{q.name}_as_map", {}, q.gsd, band, q.gsd, lambda p: p, "swapped")
+    t = None if q.truth is None else (q.truth_map + 0.5) * f - 0.5
+    sq = bx.Query(f"{q.name}_swapped", qmap.name, qmap.name, {"visible": small}, q.gsd, t,
+                  None if q.truth is None else q.truth.copy())  # fmt: skip
+    sq.tol_px = q.tol_px * f  # type: ignore[attr-defined]
+    return sq, qmap, 1.0 / f
+
+
 def build_map_inside(gap: float, puc_pairs: int, seed: int, frac: float,
                      inside: float) -> tuple[list[bx.Scene], list[bx.Query]]:  # fmt: skip
     """``--map-inside``: the map smaller than the query (a local orthophoto, a wide satellite
@@ -289,9 +311,16 @@ def main(argv: list[str] | None = None) -> int:
             # the map's index features (the workflow builds them once, beforehand): not timed
             bx.map_features(sc, sc.map_gsd, bx.merged_conf(bx.FEATURES))
             c0 = time.process_time()
-            res = bx.run_method(q, sc, METHODS[name], a.seed + qi)
+            if name == "wf_swapped":
+                sq, qmap, per = swapped(q, sc)
+                res = bx.run_method(sq, qmap, METHODS[name], a.seed + qi)
+                j = dv.judge(sq, qmap, res)
+                j.update({k: j[k] * per for k in ("error_px", "p90_px", "max_px", "p90_content_px")
+                          if j.get(k) is not None})  # fmt: skip
+            else:
+                res = bx.run_method(q, sc, METHODS[name], a.seed + qi)
+                j = dv.judge(q, sc, res)
             cpu = time.process_time() - c0
-            j = dv.judge(q, sc, res)
             rec = {"query": q.name, "group": group, "half": q.half,  # type: ignore[attr-defined]
                    "positive": q.truth is not None, **j, "inliers": res["inliers"],
                    "matches": res["matches"], "log10_nfa": res.get("log10_nfa"),
