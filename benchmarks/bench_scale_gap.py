@@ -324,7 +324,7 @@ def main(argv: list[str] | None = None) -> int:
             rec = {"query": q.name, "group": group, "half": q.half,  # type: ignore[attr-defined]
                    "positive": q.truth is not None, **j, "inliers": res["inliers"],
                    "matches": res["matches"], "log10_nfa": res.get("log10_nfa"),
-                   "seconds": res["seconds"], "cpu_seconds": cpu,
+                   "seconds": res["seconds"], "cpu_seconds": cpu, "source": res.get("pose_source"),
                    "ratio": q.gsd / sc.map_gsd}  # fmt: skip
             rows[name].append(rec)
             dv.append_record(partial, name, rec)
@@ -332,7 +332,7 @@ def main(argv: list[str] | None = None) -> int:
                 e = "-" if j["error_px"] is None else f"{j['error_px']:.2f}"
                 print(f"{rec['half'][:5]} {q.name:40s} {name:12s} {j['outcome']:12s} err {e:>8s} "
                       f"inl {res['inliers']:3d}/{res['matches']:4d} {res['seconds']:.1f}s "
-                      f"cpu {cpu:.1f}s", flush=True)  # fmt: skip
+                      f"cpu {cpu:.1f}s {res.get('pose_source') or ''}", flush=True)  # fmt: skip
     summary = dv.table(rows, methods)
     Path(a.out).write_text(json.dumps({"summary": summary, "gap": a.gap, "rows": rows},
                                       indent=1, default=float))  # fmt: skip

@@ -302,6 +302,7 @@ SOURCES: tuple[tuple[str, Source], ...] = (
     ("small_windows", small.window_source),
     ("cfog_null", small.null_source),
     ("rift", rift.source),
+    ("reversed", rift.reversed_source),
     ("learned", rift.learned_source),
     ("elevation", rift.elevation_source),
     ("cfog_peaks", small.peaks_source),
@@ -410,11 +411,13 @@ def run_sources(
                         "candidates": int(recs[name].get("candidates", 0)),
                         "seconds": round(timings[name], 3)})  # fmt: skip
     split = dict(recs["whole_query"]["plan"])
-    split["small"] = dict(recs["small_windows"])
-    if recs["cfog_null"].get("ran"):
+    split["small"] = dict(recs.get("small_windows") or {})
+    if (recs.get("cfog_null") or {}).get("ran"):
         split["small"]["cfog_null"] = recs["cfog_null"]
     if (recs.get("rift") or {}).get("ran"):
         split["rift"] = recs["rift"]
+    if (recs.get("reversed") or {}).get("ran"):
+        split["reversed"] = recs["reversed"]
     if recs.get("learned"):  # whether it ran or why not (not installed): results may differ
         split["learned"] = recs["learned"]
     if (recs.get("elevation") or {}).get("ran"):

@@ -76,7 +76,7 @@ MODES = ("off", "record", "reject")
 #: the sources whose own poses this check polishes with a floor of 1 (``rift.polish``: rift's,
 #: the learned source's and the elevation source's, the last against the DSM): rift's search
 #: with its record (``split.<name>``), which the report reads too
-POLISHED_SOURCES = ("rift", "learned", "elevation")
+POLISHED_SOURCES = ("rift", "reversed", "learned", "elevation")
 
 
 def ortho_conf(reg_conf: dict[str, Any] | None) -> dict[str, Any]:

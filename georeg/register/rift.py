@@ -1429,20 +1429,27 @@ def _search(gsd: float, u8: np.ndarray, view: Any, b: tuple[float, ...], c: dict
                  gsd_m=gsd, map_gsd_m=g, tests_before=tests_before, area=area,
                  max_scale=max_scale, n_vote=n_vote, centroids_path=cen)  # fmt: skip
     H = None if r["H"] is None else G @ r["H"]
-    rec = {"ran": True, "candidates": int(r["tests"]), "accepted": r["accepted"],
+    rec = _record(r, c, tests_before, area, len(mxy), n_candidates(len(md), c), aspect, gsd, g)
+    if max_scale > 1:  # the guess, and the GSD the pose found (its scale free)
+        rec["guess"] = gsd
+        rec["gsd"] = gsd if H is None else math.sqrt(abs(np.linalg.det(H[:2, :2])))
+    return r, H, rec
+
+
+def _record(r: dict[str, Any], c: dict[str, Any], tests_before: int, area: float, n_kp: int,
+            nearest_k: int, aspect: float, gsd: float, g: float) -> dict[str, Any]:  # fmt: skip
+    """The source record of one ``register`` result ``r`` (on ``area`` map px of ``n_kp``
+    keypoints, at working GSD ``g`` for a query of ``gsd``)."""
+    return {"ran": True, "candidates": int(r["tests"]), "accepted": r["accepted"],
            "tests_before": tests_before, "inliers": r["inliers"],
            "log10_nfa": None if math.isinf(r["log10_nfa"]) else r["log10_nfa"],
            "null_log10_nfa": None if math.isinf(r["null_log10_nfa"]) else r["null_log10_nfa"],
            "matches": r["matches"], "angle_deg": r["angle_deg"], "map_px": int(area),
            "per_rotation": [[a, round(v, 2) if math.isfinite(v) else None] for a, v in r["per_rotation"]],
-           "map_keypoints": len(mxy), "nearest_k": n_candidates(len(md), c), "confirm": r.get("confirm"), "rescue": r.get("rescue"),
+           "map_keypoints": n_kp, "nearest_k": nearest_k, "confirm": r.get("confirm"), "rescue": r.get("rescue"),
            "reangle": r.get("reangle"), "reason": f"fewer than min_cells ({c['min_cells']}) matched cells at every rotation"
            if r["decision"] is None else r["decision"].get("reason", ""), "aspect": round(aspect, 4),
            "gsd": gsd, "working_gsd": g}  # fmt: skip
-    if max_scale > 1:  # the guess, and the GSD the pose found (its scale free)
-        rec["guess"] = gsd
-        rec["gsd"] = gsd if H is None else math.sqrt(abs(np.linalg.det(H[:2, :2])))
-    return r, H, rec
 
 
 def _verify(r: dict[str, Any], H: np.ndarray | None, rec: dict[str, Any], u8: np.ndarray,
@@ -1618,3 +1625,147 @@ def elevation_source(q: Any, view: Any, parts: list[dict[str, Any]],
     ev = replace(view, read_window=view.read_elevation,
                  ortho_id=None if view.elevation_id is None else f"elevation:{view.elevation_id}")
     return source(q, ev, parts, {**conf, "elevation": {**(conf.get("rift") or {}), **ec}}, key="elevation")
+
+
+def reversed_source(q: Any, view: Any, parts: list[dict[str, Any]],
+                    conf: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, Any]]:  # fmt: skip
+    """Source ``reversed`` (run when rift is enabled): a map no larger than the query's footprint
+    (a local orthophoto under a wide scene) searched the other way round. The map, read whole
+    at the query's GSD (``read_tiled``), is the query, and the query's primary band the map, of
+    three searches in turn until one is accepted (``REVERSED``): the CFOG peak against the
+    surface's block maxima (``_reversed_cfog``), the CFOG peaks with the dense guided feature
+    re-match (``_reversed_dense``) and rift (``_reversed_rift``). Each one's NFA counts the tests
+    of the sources before this one (``q.tests_before``) and of the searches before it; its pose
+    is inverted (query px -> map) and verified as rift's (``_verify``). Not run when the query's
+    GSD is unknown or the map is larger than the query's footprint (the forward searches are
+    the ones there). Returns the parts and the record (``searches``: each search's)."""
+    rc = dict(conf.get("rift") or {})
+    if not rc.pop("enabled", False):
+        return parts, {"ran": False, "reason": "disabled (register.rift)"}
+    u8 = q.primary
+    b = tuple(float(v) for v in view.source.bounds)
+    why = ""
+    if view.read_window is None:
+        why = "no orthophoto"
+    elif q.gsd is None:
+        why = "the query's GSD unknown"
+    elif (b[2] - b[0]) * (b[3] - b[1]) > u8.size * float(q.gsd) ** 2:
+        why = "the map is larger than the query's footprint"
+    if why:
+        return parts, {"ran": False, "reason": why}
+    t0 = time.perf_counter()
+    got = read_tiled(view.read_window, b, float(q.gsd))
+    if got is None or not got[0].any():
+        return parts, {"ran": False, "reason": "orthophoto unreadable or nodata"}
+    tmpl, G = got  # the map at the query's GSD: its px -> map units
+    rec: dict[str, Any] = {"ran": True, "accepted": False, "candidates": 0, "inliers": 0, "matches": 0,
+                           "log10_nfa": None, "map_side_px": [int(tmpl.shape[1]), int(tmpl.shape[0])],
+                           "searches": []}  # fmt: skip
+    for name, search in REVERSED:
+        before = int(q.tests_before) + int(rec["candidates"])
+        Hm, srec = search(tmpl, u8, float(q.gsd), view, conf, before, q.seed)  # map px -> query px
+        srec.update(search=name, gsd=float(q.gsd))  # the GSD the structure check reads at
+        rec["searches"].append(srec)
+        rec["candidates"] += int(srec.get("candidates", 0))
+        if Hm is None or not srec.get("accepted"):
+            continue
+        r = {"accepted": True, "log10_nfa": float(srec["log10_nfa"])}
+        H = _verify(r, G @ np.linalg.inv(Hm), srec, u8, view, rift_conf(rc), conf, False, q.seed)
+        if r["accepted"]:
+            rec.update({k: srec.get(k) for k in ("accepted", "inliers", "matches", "log10_nfa")})
+            rec["search"] = name
+            parts = [*parts, {"accepted": True, "homography": H.tolist(), "log10_nfa": srec["log10_nfa"],
+                              "inliers": srec.get("inliers", 0), "matches": srec.get("matches", 0),
+                              "residual_px": None, "method": "reversed", "part": len(parts),
+                              "rows": [0, u8.shape[0]], "whole_query": True,
+                              "candidates_tried": int(rec["candidates"]), "candidates": [],
+                              "aspect": 1.0}]  # fmt: skip
+            break
+    if not rec["accepted"]:
+        rec["reason"] = "; ".join(f"{s['search']}: {s.get('reason')}" for s in rec["searches"])
+    rec["seconds"] = time.perf_counter() - t0
+    return parts, rec
+
+
+def _reversed_cfog(tmpl: np.ndarray, u8: np.ndarray, gsd: float, view: Any, conf: dict[str, Any],
+                   tests_before: int, seed: int) -> tuple[np.ndarray | None, dict[str, Any]]:  # fmt: skip
+    """The map ``tmpl`` correlated (CFOG) over the query image ``u8`` at every rotation and its
+    peak tested against the surface's block maxima elsewhere (``null_scan.scan``,
+    ``register.small.null_test``: a small query's test over a whole map); a significant peak
+    refined (``null_scan.fine_pose``). One test, its p-value calibrated by the surface itself
+    (``tests_before`` does not enter). Returns (map px -> query px, or None; record)."""
+    from georeg.register.null_scan import fine_pose, null_conf, scan
+    from georeg.register.small import small_conf
+
+    sc = small_conf(conf)
+    nc = null_conf(sc)
+    rec: dict[str, Any] = {"candidates": 1, "accepted": False, "log10_nfa": None}
+    if not nc["enabled"]:
+        return None, {**rec, "candidates": 0, "reason": "disabled (register.small.null_test)"}
+    r = scan(tmpl, 1.0, u8, float(sc["step_deg"]), int(sc["max_side"]), int(nc["block_px"]),
+             float(nc["exclude_px"]), int(nc["tail_k"]))  # fmt: skip
+    if r is None:
+        return None, {**rec, "reason": "no overlap or too few null blocks"}
+    rec.update(log10_nfa=float(r["log10_nfa"]), score=float(r["score"]), angle_deg=float(r["angle_deg"]))
+    if not r["log10_nfa"] < float(nc["log_nfa_max"]):
+        return None, {**rec, "reason": f"CFOG peak log10 NFA {r['log10_nfa']:.1f} >= {nc['log_nfa_max']}"}
+    S, ang, score = fine_pose(tmpl, 1.0, u8, r["S"], r["angle_deg"], float(nc["fine_step_deg"]),
+                              float(nc["fine_range_deg"]))  # fmt: skip
+    return S, {**rec, "accepted": True, "fine_angle_deg": ang, "fine_score": score}
+
+
+def _reversed_dense(tmpl: np.ndarray, u8: np.ndarray, gsd: float, view: Any, conf: dict[str, Any],
+                    tests_before: int, seed: int) -> tuple[np.ndarray | None, dict[str, Any]]:  # fmt: skip
+    """The map ``tmpl`` registered in the query image ``u8`` as a small query in one map window
+    (``small.small_register``: the CFOG peaks, then the guided re-match with dense SIFT features
+    decided by its NFA, counting every rotation and place and ``tests_before``). Returns (map
+    px -> query px, or None; record)."""
+    from georeg.register.small import small_conf, small_register
+
+    W = np.diag([gsd, -gsd, 1.0])  # query px -> a north-up frame in map units (y up)
+    r = small_register(tmpl, gsd, u8, W, gsd, conf, None, seed, 1, None, None, tests_before)
+    sc = small_conf(conf)  # its tests as it counts them: rotations x disc-sized places
+    n_rot = int(round(360.0 / float(sc["step_deg"])))
+    places = max(1, math.ceil(u8.size / (math.pi * float(sc["radii_px"][0]) ** 2)))
+    rec = {"candidates": n_rot * places, "accepted": bool(r["accepted"]), "log10_nfa": r.get("log10_nfa"),
+           "inliers": int(r.get("inliers") or 0), "matches": int(r.get("matches") or 0),
+           "reason": r.get("reason", ""), "dense_score": r.get("dense_score")}  # fmt: skip
+    if not r["accepted"] or r.get("homography") is None:
+        return None, rec
+    return np.linalg.inv(W) @ np.asarray(r["homography"], float), rec
+
+
+def _reversed_rift(tmpl: np.ndarray, u8: np.ndarray, gsd: float, view: Any, conf: dict[str, Any],
+                   tests_before: int, seed: int) -> tuple[np.ndarray | None, dict[str, Any]]:  # fmt: skip
+    """``register`` with the map as the query and the query image as the map, at the working GSD
+    (``working_gsd``: on a map level, its windows' GSD, the query image enlarged to it).
+    Returns (map px at the query's GSD -> query px, or None; record)."""
+    c = rift_conf(conf.get("rift"))
+    g = working_gsd(gsd, view, c, u8.size)
+    f = gsd / g  # px at the query's GSD -> working px
+    size = (max(1, round(u8.shape[1] * f)), max(1, round(u8.shape[0] * f)))
+    mimg = cv2.resize(tmpl.astype(np.float32), (max(1, round(tmpl.shape[1] * f)), max(1, round(tmpl.shape[0] * f))),
+                      interpolation=cv2.INTER_LINEAR)  # fmt: skip
+    mok = cv2.resize((tmpl > 0).astype(np.uint8), mimg.shape[::-1], interpolation=cv2.INTER_NEAREST) > 0
+    qimg = cv2.resize(u8.astype(np.float32), size, interpolation=cv2.INTER_LINEAR)
+    ok = cv2.resize((u8 > 0).astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+    small = np.where(mok, np.clip(np.round(mimg), 1, 255), 0).astype(np.uint8)
+    qmap = np.where(ok, np.clip(np.round(qimg), 1, 255), 0).astype(np.uint8)
+    mxy, md = map_features(qmap, c)
+    if len(mxy) < int(c["min_cells"]):
+        return None, {"candidates": 0, "accepted": False, "reason": f"{len(mxy)} keypoints in the query"}
+    r = register(small, None, 1.0, conf.get("acceptance") or {}, c, map_feats=(mxy, md), gsd_m=g,
+                 map_gsd_m=g, tests_before=tests_before, area=float(ok.sum()))  # fmt: skip
+    rec = _record(r, c, tests_before, float(ok.sum()), len(mxy), n_candidates(len(md), c), 1.0, gsd, g)
+    if r["H"] is None or not r["accepted"]:
+        return None, rec
+    # px at the query's GSD -> working px (pixel centres), both ways
+    T = np.array([[size[0] / u8.shape[1], 0, 0.5 * size[0] / u8.shape[1] - 0.5],
+                  [0, size[1] / u8.shape[0], 0.5 * size[1] / u8.shape[0] - 0.5], [0, 0, 1.0]])  # fmt: skip
+    M = np.array([[small.shape[1] / tmpl.shape[1], 0, 0.5 * small.shape[1] / tmpl.shape[1] - 0.5],
+                  [0, small.shape[0] / tmpl.shape[0], 0.5 * small.shape[0] / tmpl.shape[0] - 0.5], [0, 0, 1.0]])  # fmt: skip
+    return np.linalg.inv(T) @ r["H"] @ M, rec
+
+
+#: the reversed source's searches, in turn until one is accepted (cheapest first)
+REVERSED = (("cfog", _reversed_cfog), ("dense", _reversed_dense), ("rift", _reversed_rift))

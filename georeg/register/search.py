@@ -41,6 +41,7 @@ class MapSource:
     scale: np.ndarray | None = None  # (n,) keypoint diameter in map units, plain arrays only
     clip: Bounds | None = None  # a location prior: only the map inside these bounds is seen
     settings: dict[str, Any] | None = None  # features conf of plain arrays (an index has its own)
+    extent: Bounds | None = None  # the map's extent, plain arrays (a level's: its features' is smaller)
     _nn: Any = field(default=None, init=False, repr=False, compare=False)  # PlainNearest cache
 
     @classmethod
@@ -65,11 +66,13 @@ class MapSource:
 
     @property
     def bounds(self) -> Bounds:
-        """Extent of all map features (within ``clip``)."""
+        """Extent of the map (its tiles', ``extent``, else its features'; within ``clip``)."""
         if self.index is not None:
             b = np.asarray(self.index.tile_bounds, np.float64)
             b = b[np.isfinite(b).all(axis=1)]
             full = (b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max())
+        elif self.extent is not None:
+            full = tuple(float(v) for v in self.extent)
         else:
             xy = np.asarray(self.xy)
             full = (*xy.min(axis=0), *xy.max(axis=0))
@@ -168,7 +171,8 @@ def map_for_query(
     out = replace(
         view,
         source=MapSource(feats["xy"], feats["desc"], g, source.crs_wkt, angle=feats["angle"],
-                         scale=feats["scale"], clip=source.clip, settings=source.features_conf),
+                         scale=feats["scale"], clip=source.clip, settings=source.features_conf,
+                         extent=source.bounds),
         read_window=None if read_window is None
         else level.window_reader(read_level, g / level.WINDOW_FINER),
         read_gsd=g / level.WINDOW_FINER,

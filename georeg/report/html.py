@@ -335,6 +335,8 @@ def sources_text(reg: Mapping[str, Any]) -> str | None:
             one = lambda v: "none" if v is None else f"{float(v):.1f}"  # noqa: E731
             t += (f": log10 NFA {one(rift.get('log10_nfa'))}, other rotations' best "
                   f"{one(rift.get('null_log10_nfa'))}, {rift.get('matches', 0)} cells")  # fmt: skip
+            if rift.get("search"):  # the reversed source: which of its searches gave the pose
+                t += f", by its {rift['search']} search"
             if rift.get("gsd_guesses"):  # the query's GSD unknown: each guess searched
                 tried = ", ".join(f"{float(x.get('guess', x['gsd'])):.3g}" for x in rift["gsd_guesses"])
                 t += f"; GSD unknown: {tried} map units a pixel searched, this pose at {float(rift['gsd']):.3g}"
