@@ -560,7 +560,14 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int, read_
     conf = _deep(workflow_register_conf(), spec["pipeline"])
     fgsd = sc_map.map_gsd
     mxy, mdesc, mang, msize = map_features(sc_map, fgsd, merged_conf(FEATURES))
-    src = MapSource(mxy, mdesc, fgsd, angle=mang, scale=msize * fgsd)
+    # ``extent``: the map's extent, as an index's tile bounds give it in the workflow, not its
+    # features' (a map window half water has features in the other half only: Hong Kong in
+    # bench_scale_gap --map-inside). Off by default: the other sets' figures were measured on the
+    # features' extent, and it moves their feature search (Pucallpa's visible control, session 56)
+    h, w = sc_map.map_gray.shape
+    g = sc_map.map_gsd
+    ext = (-0.5 * g, -(h - 0.5) * g, (w - 0.5) * g, 0.5 * g) if spec.get("extent") else None
+    src = MapSource(mxy, mdesc, fgsd, angle=mang, scale=msize * fgsd, extent=ext)
     u8 = query_stack(q, spec.get("bands", 1))
     prior = None if not spec.get("prior") else location_prior(q, sc_map, float(spec["prior"]), seed)
     # ``no_gsd``: the query's GSD withheld, as a user who does not know it (the guesses searched)

@@ -41,16 +41,17 @@ import bench_devset as dv  # noqa: E402
 METHODS: dict[str, dict[str, Any]] = {
     "sift_plain": bx.METHODS["sift_plain"],
     # the workflow as configured (config/config.yaml ``register``), both SWIR bands when present
-    "wf_default": {"pipeline": {}, "bands": "auto"},
+    # (``extent``: the plain map's extent given, as the workflow's index gives it; session 56)
+    "wf_default": {"pipeline": {}, "bands": "auto", "extent": True},
     # the same without the map level (``register.level.min_ratio: 0``): the query resized to
     # the map's feature GSD, the search before issue 34 item 5
-    "wf_nolevel": {"pipeline": {"level": {"min_ratio": 0}}, "bands": "auto"},
+    "wf_nolevel": {"pipeline": {"level": {"min_ratio": 0}}, "bands": "auto", "extent": True},
     # the workflow default followed by its refinement stage at the map's full resolution (rule
     # refine_registration; item 5's "then refined at full resolution"), judged on the refined grid
-    "wf_default_refined": {"pipeline": {}, "bands": "auto", "refine": {}},
+    "wf_default_refined": {"pipeline": {}, "bands": "auto", "refine": {}, "extent": True},
     # roles reversed (``swapped``): the map at the query's GSD searched in the query image, by
     # the workflow default; a probe of a source not built yet (session 55), primary band only
-    "wf_swapped": {"pipeline": {}, "bands": 1},
+    "wf_swapped": {"pipeline": {}, "bands": 1, "extent": True},
 }
 
 

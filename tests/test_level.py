@@ -141,19 +141,31 @@ def test_landsat_swir_30m_on_a_map_8x_finer_registers_and_not_on_another_city(sh
 def test_a_map_smaller_than_the_query_is_found_by_rift_at_twice_the_level(shared_data):
     """Hong Kong: a Sentinel-2 SWIR query (20 m band, rescaled) whose map is a 1.6 km window of
     the other date's visible image upsampled to 2.5 m (8x finer than the band), inside the
-    query's footprint (a fifth of it):
-    rift searches the map at half the level's GSD (the query enlarged 2x: ``MapView.read_gsd``),
-    where the overlap holds enough of its cells, and finds the place within one query pixel
-    where the map is; at the level's GSD it found nothing (session 54)."""
+    query's footprint (a fifth of it): rift's source on the map level's view searches the map
+    at half the level's GSD (the query enlarged 2x: ``MapView.read_gsd``), where the overlap
+    holds enough of its cells, and finds the place within one query pixel where the map is; at
+    the level's GSD it found nothing (session 54). The source alone: in the workflow the feature
+    search now finds this query first, on the level of the whole map (session 56)."""
+    from georeg.register import rift
+    from georeg.register.search import QueryInput
+
     sg = _bench()
     bx = sg.bx
     sc = bx.s2_scene("hongkong")
     q = bx.make_query(sc, np.random.default_rng(11), 0, 0.6)
     up = sg.map_inside(sc, q, 0.3, 8.0)
     q.tol_px = 8.0
-    spec = {"pipeline": {}, "bands": "auto"}
-    res = bx.run_method(q, up, spec, 11)
-    j = sg.dv.judge(q, up, res)
-    assert j["outcome"] == "success" and res["pose_source"] == "rift", (j, res["sources"])
-    assert res["level"]["gsd"] == pytest.approx(q.gsd)
-    assert (res["rift"] or {}).get("working_gsd") == pytest.approx(q.gsd / 2)
+    conf = bx.workflow_register_conf()
+    g = up.map_gsd
+    mxy, mdesc, mang, msize = bx.map_features(up, g, bx.merged_conf(bx.FEATURES))
+    h, w = up.map_gray.shape
+    src = MapSource(mxy, mdesc, g, angle=mang, scale=msize * g,
+                    extent=(-0.5 * g, -(h - 0.5) * g, (w - 0.5) * g, 0.5 * g))  # fmt: skip
+    u8 = bx.query_stack(q, "auto")
+    view, factors, lrec = map_for_query(src, None, u8.shape[-1], u8.shape[-2], q.gsd, [q.gsd / g], conf,
+                                        bx.plain_window_reader(up), bx.plain_level_reader(up))  # fmt: skip
+    assert lrec["gsd"] == pytest.approx(q.gsd) and view.read_gsd == pytest.approx(q.gsd / 2)
+    parts, rec = rift.source(QueryInput(u8, None, q.gsd, factors, 11), view, [], conf)  # type: ignore[arg-type]
+    assert rec["accepted"] and rec["working_gsd"] == pytest.approx(q.gsd / 2), rec.get("reason")
+    j = sg.dv.judge(q, up, {"accepted": True, "H": np.asarray(parts[-1]["homography"])})
+    assert j["outcome"] == "success" and j["error_px"] <= 8.0, j
