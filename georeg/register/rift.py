@@ -1661,6 +1661,7 @@ def reversed_source(q: Any, view: Any, parts: list[dict[str, Any]],
     rec: dict[str, Any] = {"ran": True, "accepted": False, "candidates": 0, "inliers": 0, "matches": 0,
                            "log10_nfa": None, "map_side_px": [int(tmpl.shape[1]), int(tmpl.shape[0])],
                            "searches": []}  # fmt: skip
+    c = rift_conf(rc)
     for name, search in REVERSED:
         before = int(q.tests_before) + int(rec["candidates"])
         Hm, srec = search(tmpl, u8, float(q.gsd), view, conf, before, q.seed)  # map px -> query px
@@ -1670,7 +1671,7 @@ def reversed_source(q: Any, view: Any, parts: list[dict[str, Any]],
         if Hm is None or not srec.get("accepted"):
             continue
         r = {"accepted": True, "log10_nfa": float(srec["log10_nfa"])}
-        H = _verify(r, G @ np.linalg.inv(Hm), srec, u8, view, rift_conf(rc), conf, False, q.seed)
+        H = _verify(r, G @ np.linalg.inv(Hm), srec, u8, view, c, conf, False, q.seed)
         if r["accepted"]:
             rec.update({k: srec.get(k) for k in ("accepted", "inliers", "matches", "log10_nfa")})
             rec["search"] = name
@@ -1743,14 +1744,8 @@ def _reversed_rift(tmpl: np.ndarray, u8: np.ndarray, gsd: float, view: Any, conf
     c = rift_conf(conf.get("rift"))
     g = working_gsd(gsd, view, c, u8.size)
     f = gsd / g  # px at the query's GSD -> working px
-    size = (max(1, round(u8.shape[1] * f)), max(1, round(u8.shape[0] * f)))
-    mimg = cv2.resize(tmpl.astype(np.float32), (max(1, round(tmpl.shape[1] * f)), max(1, round(tmpl.shape[0] * f))),
-                      interpolation=cv2.INTER_LINEAR)  # fmt: skip
-    mok = cv2.resize((tmpl > 0).astype(np.uint8), mimg.shape[::-1], interpolation=cv2.INTER_NEAREST) > 0
-    qimg = cv2.resize(u8.astype(np.float32), size, interpolation=cv2.INTER_LINEAR)
-    ok = cv2.resize((u8 > 0).astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
-    small = np.where(mok, np.clip(np.round(mimg), 1, 255), 0).astype(np.uint8)
-    qmap = np.where(ok, np.clip(np.round(qimg), 1, 255), 0).astype(np.uint8)
+    small, _, M = _scaled(tmpl, f)
+    qmap, ok, T = _scaled(u8, f)
     mxy, md = map_features(qmap, c)
     if len(mxy) < int(c["min_cells"]):
         return None, {"candidates": 0, "accepted": False, "reason": f"{len(mxy)} keypoints in the query"}
@@ -1759,12 +1754,18 @@ def _reversed_rift(tmpl: np.ndarray, u8: np.ndarray, gsd: float, view: Any, conf
     rec = _record(r, c, tests_before, float(ok.sum()), len(mxy), n_candidates(len(md), c), 1.0, gsd, g)
     if r["H"] is None or not r["accepted"]:
         return None, rec
-    # px at the query's GSD -> working px (pixel centres), both ways
-    T = np.array([[size[0] / u8.shape[1], 0, 0.5 * size[0] / u8.shape[1] - 0.5],
-                  [0, size[1] / u8.shape[0], 0.5 * size[1] / u8.shape[0] - 0.5], [0, 0, 1.0]])  # fmt: skip
-    M = np.array([[small.shape[1] / tmpl.shape[1], 0, 0.5 * small.shape[1] / tmpl.shape[1] - 0.5],
-                  [0, small.shape[0] / tmpl.shape[0], 0.5 * small.shape[0] / tmpl.shape[0] - 0.5], [0, 0, 1.0]])  # fmt: skip
     return np.linalg.inv(T) @ r["H"] @ M, rec
+
+
+def _scaled(u8: np.ndarray, f: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``u8`` (0 = nodata) resized by ``f`` (bilinear values, nearest validity): the image, its
+    valid mask and the 3 x 3 pixel centre -> new pixel centre."""
+    size = (max(1, round(u8.shape[1] * f)), max(1, round(u8.shape[0] * f)))
+    img = cv2.resize(u8.astype(np.float32), size, interpolation=cv2.INTER_LINEAR)
+    ok = cv2.resize((u8 > 0).astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+    fx, fy = size[0] / u8.shape[1], size[1] / u8.shape[0]
+    S = np.array([[fx, 0, 0.5 * fx - 0.5], [0, fy, 0.5 * fy - 0.5], [0, 0, 1.0]])
+    return np.where(ok, np.clip(np.round(img), 1, 255), 0).astype(np.uint8), ok, S
 
 
 #: the reversed source's searches, in turn until one is accepted (cheapest first)
