@@ -178,3 +178,27 @@ def test_a_small_footprint_gets_a_guard_it_can_compute():
     x1, y1 = map_xy(H1, w, w)
     assert info1["accepted"], info1
     assert np.percentile(np.hypot(x1 - tx, y1 - ty), 90) < 0.5
+
+
+def test_a_map_smaller_than_the_query_is_refit_on_its_overlap(scene):
+    """The map holds a quarter of the query (its top-left 110 px): the tie points cover that
+    overlap, not the footprint. Measured against the overlap (``cover_of: overlap``, the
+    default) the refit is taken and brings the overlap to the truth; against the whole footprint
+    (``footprint``, the check of a feature fit) it is refused and the fit kept exactly."""
+    mi = scene["map"]
+    n = mi.gray.shape[0]
+    cols, rows = np.meshgrid(np.arange(n) + 1000.5, 3000.0 - np.arange(n) - 0.5)
+    u, v = apply_h(np.linalg.inv(scene["H"]), cols, rows)  # map pixel -> query px
+    part = MapImage(np.where((u < 110) & (v < 110), mi.gray, np.nan), mi.transform)
+    tx, ty = scene["truth"]
+    over = np.zeros((HGT, W), bool)
+    over[5:100, 5:100] = True  # the overlap, away from its edge
+    x0, y0 = map_xy(scene["H0"], W, HGT)
+    assert np.percentile(np.hypot(x0 - tx, y0 - ty)[over], 90) > 0.8
+    H, info = dense_fit(scene["band"], scene["H0"], part, {}, {})
+    assert info["accepted"] and info["cover"] >= 0.3, info
+    x, y = map_xy(H, W, HGT)
+    assert np.percentile(np.hypot(x - tx, y - ty)[over], 90) < 0.3
+    Hf, infof = dense_fit(scene["band"], scene["H0"], part, {"cover_of": "footprint"}, {})
+    assert not infof["accepted"] and "cover" in infof["reason"], infof
+    assert np.array_equal(Hf, scene["H0"])

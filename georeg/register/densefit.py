@@ -39,6 +39,14 @@ DEFAULTS: dict[str, Any] = {
     "iterations": 4,  # measure -> fit passes
     "min_tie_points": 20,  # fewer accepted tie points: keep the feature homography
     "min_cover": 0.3,  # tie points' convex hull / valid footprint area, at least
+    # the footprint of min_cover: overlap = where the map has data too (a map smaller than the
+    # query holds tie points on its overlap only: session 57); footprint = the whole query
+    "cover_of": "overlap",
+    # ... but with ``overlap`` the tie points still cover this share of the whole footprint: an
+    # affine refit of a patch of 3-4 % of it moved the reversed source's poses on a map a
+    # sixteenth of the query 4-9 map px off; on a map a quarter of it they cover 15-18 % and the
+    # refit brought three poses 8-15 -> 2-2.6 px (session 57)
+    "min_footprint_cover": 0.05,
     "reject_sigma": 3.0,  # outlier bound: this many robust sigmas of the residuals ...
     "reject_floor_px": 0.75,  # ... but never below this (query px)
     "cv_folds": 5,  # spatially blocked folds of the guard
@@ -209,6 +217,8 @@ def dense_fit(
     requested = str(c["model"])
     if requested not in ("homography", "affine", "similarity", "auto"):
         raise ValueError(f"unknown global_fit model {requested!r}")
+    if str(c["cover_of"]) not in ("overlap", "footprint"):
+        raise ValueError(f"unknown global_fit cover_of {c['cover_of']!r} (overlap | footprint)")
     if str(c["auto_rule"]) not in ("gain", "one_se"):
         raise ValueError(f"unknown global_fit auto_rule {c['auto_rule']!r} (gain | one_se)")
     if requested == "auto":  # iterate with the affine map, then choose by blocked CV
@@ -233,6 +243,7 @@ def dense_fit(
         x, y = apply_h(Hc, cols, rows)
         rendered = map_image.render(x, y)
         rvalid = np.isfinite(rendered)
+        seen = rvalid  # the map's part of the footprint
         rf = cfog(np.nan_to_num(rendered), rvalid, int(rc["orientations"]),
                   float(rc["cfog_sigma_px"]))  # fmt: skip
         m = measure_shifts(qf, rf, qvalid, rvalid, centres, win, search,
@@ -265,7 +276,8 @@ def dense_fit(
         info["seconds"] = time.perf_counter() - t0
         return H0, info
     src, dst, wts, keep = last
-    cover = cover_fraction(src[keep], qvalid)
+    cover_all = cover_fraction(src[keep], qvalid)
+    cover = cover_fraction(src[keep], qvalid & seen) if c["cover_of"] == "overlap" else cover_all
     seed = int(rc.get("seed", 0))
     block = float(c["cv_block_windows"]) * win
     if requested == "auto" and c.get("auto_rule") == "one_se":
@@ -290,6 +302,7 @@ def dense_fit(
         tie_points=int(len(src)),
         inliers=int(keep.sum()),
         cover=cover,
+        cover_footprint=cover_all,
         cv_rms_px=cv,
         moved_corners_px=[round(float(v), 3) for v in moved],
     )
@@ -297,6 +310,9 @@ def dense_fit(
         info["reason"] = (
             f"tie points cover {cover:.2f} of the footprint < min_cover {c['min_cover']}"
         )
+    elif c["cover_of"] == "overlap" and cover_all < float(c["min_footprint_cover"]):
+        info["reason"] = (f"tie points cover {cover_all:.3f} of the whole footprint < "
+                          f"min_footprint_cover {c['min_footprint_cover']}")  # fmt: skip
     elif not cv["refit"] < (1 - float(c["min_gain"])) * cv["feature"]:
         info["reason"] = (
             f"cross-validated residual {cv['refit']:.3f} px not below the feature homography's "
@@ -306,7 +322,7 @@ def dense_fit(
         info["accepted"] = True
     info["homography"] = Hc.tolist()
     info["seconds"] = time.perf_counter() - t0
-    log.info("global dense fit: %d tie points, cover %.2f, CV %.3f vs %.3f px -> %s",
-             len(src), cover, cv["refit"], cv["feature"],
+    log.info("global dense fit: %d tie points, cover %.2f (%.3f of the footprint), CV %.3f vs "
+             "%.3f px -> %s", len(src), cover, cover_all, cv["refit"], cv["feature"],
              "refit" if info["accepted"] else info.get("reason"))  # fmt: skip
     return (Hc if info["accepted"] else H0), info

@@ -66,6 +66,10 @@ DEFAULTS: dict[str, Any] = {
     "refit": True,  # refit the fit to dense tie points first (georeg.register.densefit)
     "refit_iterations": 6,  # measure -> affine fit passes of the refit
     "refit_min_gain": 0.1,  # the refit is taken when its blocked CV residual is this much lower
+    # its tie points must cover this footprint (densefit ``cover_of``): the whole query where the
+    # refit decides (a feature fit's check: on the map's overlap only, a wrong fit's refit passed
+    # the veto, session 57); ``rift.polish`` of an accepted pose: the map's overlap
+    "refit_cover_of": "footprint",
     "veto_gain": 2.0,  # any mode but off: a checked fit supported less than this times the best
     # moved hypothesis is not_found (0 = never); not applied to rift's poses (their polish is
     # this check with its own floor of 1)
@@ -190,7 +194,8 @@ def refit(q_u8: np.ndarray, H: np.ndarray, ortho: MapImage,
     S = _scale(s)
     Hs = np.asarray(H, float) @ np.linalg.inv(S)
     gconf = {"model": "affine", "iterations": int(c["refit_iterations"]),
-             "min_tie_points": int(c["min_points"]), "min_gain": float(c["refit_min_gain"])}
+             "min_tie_points": int(c["min_points"]), "min_gain": float(c["refit_min_gain"]),
+             "cover_of": str(c["refit_cover_of"])}  # fmt: skip
     rconf = {k: int(c[k]) for k in ("window_px", "grid_step_px", "search_px")}
     Hn, info = dense_fit(qs8, Hs, ortho, gconf, rconf)
     Hr = Hn @ S

@@ -1100,7 +1100,8 @@ def polish(u8: np.ndarray, H: np.ndarray, read_window: Any, reg_conf: dict[str, 
     from georeg.register import ortho_check
 
     H = np.asarray(H, float)
-    oc = {**ortho_check.ortho_conf(reg_conf), "mode": "record"}
+    # an accepted pose is polished, not decided: its refit need cover only what the map shows
+    oc = {**ortho_check.ortho_conf(reg_conf), "mode": "record", "refit_cover_of": "overlap"}
     img = ortho_check.window_image(read_window, H, u8.shape, oc)
     if img is None:
         return H, None
