@@ -243,7 +243,6 @@ def dense_fit(
         x, y = apply_h(Hc, cols, rows)
         rendered = map_image.render(x, y)
         rvalid = np.isfinite(rendered)
-        seen = rvalid  # the map's part of the footprint
         rf = cfog(np.nan_to_num(rendered), rvalid, int(rc["orientations"]),
                   float(rc["cfog_sigma_px"]))  # fmt: skip
         m = measure_shifts(qf, rf, qvalid, rvalid, centres, win, search,
@@ -276,8 +275,8 @@ def dense_fit(
         info["seconds"] = time.perf_counter() - t0
         return H0, info
     src, dst, wts, keep = last
-    cover_all = cover_fraction(src[keep], qvalid)
-    cover = cover_fraction(src[keep], qvalid & seen) if c["cover_of"] == "overlap" else cover_all
+    cover_all = cover_fraction(src[keep], qvalid)  # rvalid: the map's part of the footprint
+    cover = cover_fraction(src[keep], qvalid & rvalid) if c["cover_of"] == "overlap" else cover_all
     seed = int(rc.get("seed", 0))
     block = float(c["cv_block_windows"]) * win
     if requested == "auto" and c.get("auto_rule") == "one_se":
