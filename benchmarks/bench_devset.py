@@ -98,6 +98,30 @@ PUC_DATES = (1985, 1990, 1995, 2000, 2005, 2010, 2015, 2020)
 # ----------------------------------------------------------------------------- SRIF
 
 
+def coarsened(q: bx.Query, f: float) -> bx.Query:
+    """``q`` seen by a sensor ``f`` x coarser: each band area-averaged (a query pixel is the mean
+    of the f x f it covers; nodata where any of them was), the GSD x f, the truth grid's query px
+    moved with it (its map px unchanged, so the tolerance in map px stays). ``--coarsen``: a
+    real fine map under a coarse query (session 58)."""
+    bands = {}
+    for k, b in q.bands.items():
+        h, w = b.shape
+        size = (max(8, round(w / f)), max(8, round(h / f)))
+        ok = (b > 0).astype(np.float32)
+        img = cv2.resize(b.astype(np.float32) * ok, size, interpolation=cv2.INTER_AREA)
+        val = cv2.resize(ok, size, interpolation=cv2.INTER_AREA)
+        bands[k] = np.where(val > 0.99, np.clip(np.round(img / np.maximum(val, 1e-6)), 1, 255),
+                            0).astype(np.uint8)  # fmt: skip
+    h, w = next(iter(q.bands.values())).shape
+    sh, sw = next(iter(bands.values())).shape
+    q.bands = bands
+    q.gsd *= w / sw
+    if q.truth is not None:
+        q.truth = (q.truth + 0.5) * np.array([sw / w, sh / h]) - 0.5
+    q.name += f"_c{f:g}"
+    return q
+
+
 def srif_half(i: int) -> str:
     """The fixed split by pair index: 1-99 tuning, 101-199 checking."""
     return "tuning" if i < 100 else "checking"
@@ -659,6 +683,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="SRIF: the first N pairs of each half per modality (0 = all 50)")
     ap.add_argument("--block", type=int, default=BLOCK,
                     help="SRIF wide: consecutive pairs per mosaic (every 5th left out)")
+    ap.add_argument("--coarsen", type=float, default=1.0,
+                    help="every query area-averaged by this factor (a real fine map under a "
+                    "coarse query: the map keeps its GSD); 1 = as the set has it")
     ap.add_argument("--raw-query", action="store_true",
                     help="SRIF queries as a user's JPEG arrives: the black fill of a rotated image valid too")
     ap.add_argument("--pool", action="store_true",
@@ -704,6 +731,8 @@ def main(argv: list[str] | None = None) -> int:
         s, q = build_pucallpa(a.seed, True, a.puc_first, a.puc_crops, a.puc_query)
         scenes += s
         queries += q
+    if a.coarsen != 1.0:
+        queries = [coarsened(q, a.coarsen) for q in queries]
     order = {"wide": 0, "big": 0, "pucallpa": 1, "pair": 2}  # a cut run keeps the targets first
     queries.sort(key=lambda q: order[q.setting])  # type: ignore[attr-defined]
     if a.half != "both":

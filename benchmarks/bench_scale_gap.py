@@ -131,11 +131,14 @@ def half(sc: bx.Scene) -> str:
 
 
 def build(gap: float, per_scene: int, puc_pairs: int, seed: int, synthetic: list[str],
-          frac: float = 0.5) -> tuple[list[bx.Scene], list[bx.Query]]:  # fmt: skip
+          frac: float = 0.5, coarsen: float = 0.0) -> tuple[list[bx.Scene], list[bx.Query]]:  # fmt: skip
     """Upsampled scenes, ``per_scene`` queries each (half the scene side; EnMAP 0.7), and every
-    query against another scene of its half (unrelated)."""
+    query against another scene of its half (unrelated). ``coarsen`` > 0: the maps as they are
+    (real detail at their GSD) and each query area-averaged by ``coarsen`` instead (a real fine
+    map under a coarse query: Sentinel-2's 10 m map under an 80 m query at 4); success within
+    one query px."""
     base = bx.all_scenes() + pucallpa_scenes(puc_pairs)
-    scenes = [upsampled(sc, gap) for sc in base]
+    scenes = base if coarsen else [upsampled(sc, gap) for sc in base]
     rng = np.random.default_rng(seed)
     qs = []
     if synthetic:
@@ -158,8 +161,11 @@ def build(gap: float, per_scene: int, puc_pairs: int, seed: int, synthetic: list
                          None)  # fmt: skip
             n.half = q.half  # type: ignore[attr-defined]
             neg.append(n)
+    by = {sc.name: sc for sc in scenes}
     for q in qs + neg:
-        q.tol_px = gap  # type: ignore[attr-defined]
+        if coarsen:
+            dv.coarsened(q, coarsen)
+        q.tol_px = q.gsd / by[q.map_scene].map_gsd if coarsen else gap  # type: ignore[attr-defined]
     return scenes, qs + neg
 
 
@@ -239,6 +245,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--map-inside", type=float, default=0.0,
                     help="the map a window of this fraction of the scene side around the query "
                     "(--frac of the side: the map smaller than the query); 0 = the whole scene")
+    ap.add_argument("--coarsen", type=float, default=0.0,
+                    help="the maps as they are, each query area-averaged by this factor "
+                    "(a real fine map; not with --map-inside); 0 = the map upsampled by --gap")
     ap.add_argument("--puc-pairs", type=int, default=8, help="Pucallpa date pairs (of 28)")
     ap.add_argument("--methods", default="sift_plain,wf_default")
     ap.add_argument("--half", choices=("tuning", "checking", "both"), default="both")
@@ -284,7 +293,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.map_inside:
         scenes, queries = build_map_inside(a.gap, a.puc_pairs, a.seed, a.frac, a.map_inside)
     else:
-        scenes, queries = build(a.gap, a.per_scene, a.puc_pairs, a.seed, syn, a.frac)
+        scenes, queries = build(a.gap, a.per_scene, a.puc_pairs, a.seed, syn, a.frac, a.coarsen)
     if a.half != "both":
         queries = [q for q in queries if q.half == a.half]  # type: ignore[attr-defined]
     if a.positives_only:

@@ -10,7 +10,7 @@ channels (``cfog``), a map window (``MapImage``, ``read_map_gray``), a window gr
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -85,15 +85,52 @@ def query_cfog(band: np.ndarray, orientations: int = 9,
     return ch.astype(np.float32), valid
 
 
+def sampling_step(col: np.ndarray, row: np.ndarray) -> float:
+    """Map px between neighbouring samples of a 2-D sampling grid (geometric mean of the two
+    directions, along the grid's middle row and column); 1 for anything else."""
+    if col.ndim != 2 or min(col.shape) < 2:
+        return 1.0
+    h, w = col.shape
+    du = np.hypot(np.diff(col[h // 2]), np.diff(row[h // 2]))
+    dv = np.hypot(np.diff(col[:, w // 2]), np.diff(row[:, w // 2]))
+    du, dv = du[np.isfinite(du)], dv[np.isfinite(dv)]
+    if not len(du) or not len(dv):
+        return 1.0
+    return float(np.sqrt(np.median(du) * np.median(dv)))
+
+
 @dataclass
 class MapImage:
     """A gray map raster (float32, NaN = nodata) and its affine geotransform (rasterio order)."""
 
     gray: np.ndarray
     transform: Any
+    #: low-passed copies of ``gray`` by blur sigma (map px): (values with nodata 0, nodata mask)
+    _lowpass: dict[float, tuple[np.ndarray, np.ndarray]] = field(
+        default_factory=dict, repr=False, compare=False
+    )
+
+    def lowpassed(self, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+        """The map Gaussian-blurred by ``sigma`` map px over its valid pixels only (normalised
+        convolution: nodata neither darkens nor spreads), and its nodata mask; cached."""
+        key = round(float(sigma), 1) if sigma >= 0.3 else 0.0
+        if key not in self._lowpass:
+            bad = ~np.isfinite(self.gray)
+            src = np.where(bad, 0, self.gray).astype(np.float32)
+            if key:
+                ok = (~bad).astype(np.float32)
+                num = cv2.GaussianBlur(src * ok, (0, 0), key)
+                den = cv2.GaussianBlur(ok, (0, 0), key)
+                src = np.where(den > 1e-6, num / np.maximum(den, 1e-6), 0).astype(np.float32)
+            self._lowpass[key] = (src, bad)
+        return self._lowpass[key]
 
     def render(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """The map sampled (bilinear) at map x, y: an image in query geometry, NaN outside."""
+        """The map sampled at map x, y: an image in query geometry, NaN outside.
+
+        Bilinear, on the map low-passed first where the samples are more than a map px apart
+        (Gaussian sigma = sqrt(step^2 - 1) / 2 map px): a query coarser than the map sees the
+        map's area mean, not an aliased pick of its pixels (session 58)."""
         a, b, c, d, e, f = (float(v) for v in tuple(self.transform)[:6])
         det = a * e - b * d
         dx, dy = x - c, y - f
@@ -102,9 +139,8 @@ class MapImage:
         ok = np.isfinite(col) & np.isfinite(row)
         mx = np.where(ok, col, -1e6).astype(np.float32)
         my = np.where(ok, row, -1e6).astype(np.float32)
-        g = self.gray
-        bad = ~np.isfinite(g)
-        src = np.where(bad, 0, g).astype(np.float32)
+        step = sampling_step(col, row)
+        src, bad = self.lowpassed(0.5 * np.sqrt(max(step * step - 1.0, 0.0)))
         out = cv2.remap(
             src, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0
         )
