@@ -7,7 +7,7 @@ points), and the homography is refitted to every accepted tie point by weighted 
 with iterative outlier rejection; measure -> fit is iterated.
 
 "Never hurts": the refit replaces the feature homography only when its tie points cover the
-footprint and its spatially blocked cross-validated residual (each block predicted by the
+footprint (as far as windows can be measured there) and its spatially blocked cross-validated residual (each block predicted by the
 homography fitted without it) is lower than the feature homography's residual on the same
 points; otherwise the feature homography is kept (``accepted: false`` and why).
 """
@@ -38,7 +38,9 @@ DEFAULTS: dict[str, Any] = {
     "enabled": True,
     "iterations": 4,  # measure -> fit passes
     "min_tie_points": 20,  # fewer accepted tie points: keep the feature homography
-    "min_cover": 0.3,  # tie points' convex hull / valid footprint area, at least
+    "min_cover": 0.3,  # tie points' convex hull / that of the windows that could be measured
+    # (``cover_fraction``; over the valid pixels before session 59, which refused most queries
+    # of 100-130 px: their windows' margin is much of them)
     # the footprint of min_cover: overlap = where the map has data too (a map smaller than the
     # query holds tie points on its overlap only: session 57); footprint = the whole query
     "cover_of": "overlap",
@@ -190,14 +192,40 @@ def blocked_cv(src: np.ndarray, dst: np.ndarray, w: np.ndarray, H0: np.ndarray, 
     return out
 
 
-def cover_fraction(pts: np.ndarray, valid: np.ndarray) -> float:
-    """Convex hull area of ``pts`` over the valid query area."""
+def hull_area(pts: np.ndarray) -> float:
+    """Area of the convex hull of ``pts`` (N, 2); 0 for fewer than 3 points."""
     import cv2
 
-    if len(pts) < 3 or not valid.any():
+    if len(pts) < 3:
         return 0.0
-    hull = cv2.convexHull(pts.astype(np.float32))
-    return float(cv2.contourArea(hull)) / float(valid.sum())
+    return float(cv2.contourArea(cv2.convexHull(pts.astype(np.float32))))
+
+
+def cover_fraction(pts: np.ndarray, measurable: np.ndarray) -> float:
+    """Convex hull area of the tie points ``pts`` over that of the grid points where a tie point
+    could be measured (``measurable``: their windows valid enough). Not over the valid pixels:
+    a window's centre keeps off the edge of the valid area, a margin that is most of a small
+    query (a 100 px query's 32 px windows span at most ~0.6 of it)."""
+    reach = hull_area(measurable)
+    return min(1.0, hull_area(pts) / reach) if reach > 0 else 0.0
+
+
+def query_measurable(qvalid: np.ndarray, centres: np.ndarray, window: int,
+                     min_valid: float) -> np.ndarray:  # fmt: skip
+    """Which grid windows hold enough valid query pixels (the query side of
+    ``measure_shifts``'s validity: windows clipped by the image count their inside part)."""
+    import cv2
+
+    h, w = qvalid.shape
+    ci = np.round(centres[:, 0]).astype(int)
+    ri = np.round(centres[:, 1]).astype(int)
+    cnt = cv2.boxFilter(qvalid.astype(np.float32), cv2.CV_32F, (window, window), normalize=False,
+                        borderType=cv2.BORDER_CONSTANT)[ri, ci]  # fmt: skip
+    inside = np.ones(len(centres))
+    for cc, size in ((ci, w), (ri, h)):
+        lo = np.maximum(cc - window // 2, 0)
+        inside *= (np.minimum(cc - window // 2 + window, size) - lo) / window
+    return cnt >= min_valid * inside * window * window
 
 
 def dense_fit(
@@ -250,7 +278,7 @@ def dense_fit(
         ok = m["valid"] & ~m["border"] & (m["score"] >= float(rc["min_score"]))
         if ok.sum() >= 3:
             ok[ok] &= consistent(pts[ok], m["shift"][ok], 2.5 * step, float(rc["consistency_px"]))
-        src = pts[ok]
+        src, measured = pts[ok], m["valid"]
         dx, dy = apply_h(Hc, src[:, 0] + m["shift"][ok, 0], src[:, 1] + m["shift"][ok, 1])
         dst = np.c_[dx, dy]
         wts = np.clip(m["score"][ok], 0.05, 1.0)
@@ -266,7 +294,7 @@ def dense_fit(
         entry["residual_px"] = float(np.median(residuals_px(Hn, src[keep], dst[keep], px)))
         move = residuals_px(Hn, corners, np.c_[apply_h(Hc, corners[:, 0], corners[:, 1])], px)
         entry["moved_px"] = float(move.max())
-        last = (src, dst, wts, keep)
+        last = (src, dst, wts, keep, measured)
         Hc = Hn
         if move.max() < float(c["converged_px"]):
             break
@@ -274,9 +302,11 @@ def dense_fit(
     if last is None:
         info["seconds"] = time.perf_counter() - t0
         return H0, info
-    src, dst, wts, keep = last
-    cover_all = cover_fraction(src[keep], qvalid)  # rvalid: the map's part of the footprint
-    cover = cover_fraction(src[keep], qvalid & rvalid) if c["cover_of"] == "overlap" else cover_all
+    src, dst, wts, keep, measured = last
+    # of where tie points could be measured: in the query (footprint) or in both (overlap)
+    qmeas = query_measurable(qvalid, centres, win, float(rc["min_valid_fraction"]))
+    cover_all = cover_fraction(src[keep], pts[qmeas])
+    cover = cover_fraction(src[keep], pts[measured]) if c["cover_of"] == "overlap" else cover_all
     seed = int(rc.get("seed", 0))
     block = float(c["cv_block_windows"]) * win
     if requested == "auto" and c.get("auto_rule") == "one_se":
