@@ -7,9 +7,9 @@ points), and the homography is refitted to every accepted tie point by weighted 
 with iterative outlier rejection; measure -> fit is iterated.
 
 "Never hurts": the refit replaces the feature homography only when its tie points cover the
-footprint (as far as windows can be measured there) and its spatially blocked cross-validated residual (each block predicted by the
-homography fitted without it) is lower than the feature homography's residual on the same
-points; otherwise the feature homography is kept (``accepted: false`` and why).
+footprint (as far as windows can be measured there) and its spatially blocked cross-validated
+residual (each block predicted by the homography fitted without it) is lower than the feature
+homography's residual on the same points; otherwise the feature homography is kept (``accepted: false`` and why).
 """
 
 from __future__ import annotations
@@ -28,6 +28,7 @@ from georeg.register.tiepoints import (
     grid_points,
     measure_shifts,
     query_cfog,
+    query_measurable,
     window_centroid,
 )
 from georeg.register.tiepoints import merged as tiepoint_settings
@@ -208,24 +209,6 @@ def cover_fraction(pts: np.ndarray, measurable: np.ndarray) -> float:
     query (a 100 px query's 32 px windows span at most ~0.6 of it)."""
     reach = hull_area(measurable)
     return min(1.0, hull_area(pts) / reach) if reach > 0 else 0.0
-
-
-def query_measurable(qvalid: np.ndarray, centres: np.ndarray, window: int,
-                     min_valid: float) -> np.ndarray:  # fmt: skip
-    """Which grid windows hold enough valid query pixels (the query side of
-    ``measure_shifts``'s validity: windows clipped by the image count their inside part)."""
-    import cv2
-
-    h, w = qvalid.shape
-    ci = np.round(centres[:, 0]).astype(int)
-    ri = np.round(centres[:, 1]).astype(int)
-    cnt = cv2.boxFilter(qvalid.astype(np.float32), cv2.CV_32F, (window, window), normalize=False,
-                        borderType=cv2.BORDER_CONSTANT)[ri, ci]  # fmt: skip
-    inside = np.ones(len(centres))
-    for cc, size in ((ci, w), (ri, h)):
-        lo = np.maximum(cc - window // 2, 0)
-        inside *= (np.minimum(cc - window // 2 + window, size) - lo) / window
-    return cnt >= min_valid * inside * window * window
 
 
 def dense_fit(

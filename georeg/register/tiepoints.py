@@ -234,6 +234,29 @@ def quad_peaks(s: np.ndarray) -> np.ndarray:
     return out
 
 
+def inside_fraction(ci: np.ndarray, ri: np.ndarray, window: int, width: int,
+                    height: int) -> np.ndarray:  # fmt: skip
+    """The share of each window (centred on integer ``ci``, ``ri``) inside the image: a window
+    clipped by the image edge counts its inside part only."""
+    inside = np.ones(len(ci))
+    for cc, size in ((ci, width), (ri, height)):
+        lo = np.maximum(cc - window // 2, 0)
+        inside *= (np.minimum(cc - window // 2 + window, size) - lo) / window
+    return inside
+
+
+def query_measurable(qvalid: np.ndarray, pts: np.ndarray, window: int,
+                     min_valid: float) -> np.ndarray:  # fmt: skip
+    """Which windows centred on ``pts`` hold enough valid query pixels: the query side of
+    :func:`measure_shifts`'s validity."""
+    h, w = qvalid.shape
+    ci = np.round(pts[:, 0]).astype(int)
+    ri = np.round(pts[:, 1]).astype(int)
+    cnt = cv2.boxFilter(qvalid.astype(np.float32), cv2.CV_32F, (window, window), normalize=False,
+                        borderType=cv2.BORDER_CONSTANT)[ri, ci]  # fmt: skip
+    return cnt >= min_valid * inside_fraction(ci, ri, window, w, h) * window * window
+
+
 def measure_shifts(
     qf: np.ndarray,
     rf: np.ndarray,
@@ -287,13 +310,7 @@ def measure_shifts(
             with np.errstate(invalid="ignore", divide="ignore"):
                 ncc[:, iy, ix] = np.where(var > 1e-12, cov / np.sqrt(np.maximum(var, 1e-30)), -1.0)
             mincount = np.minimum(mincount, rcnt_full[rr, cc])
-    # a window clipped by the image edge counts its inside part
-    inside = np.ones(n)
-    for cc, size in ((ci, W), (ri, H)):
-        lo = np.maximum(cc - window // 2, 0)
-        hi = np.minimum(cc - window // 2 + window, size)
-        inside *= (hi - lo) / window
-    valid = mincount >= min_valid * inside * window * window
+    valid = mincount >= min_valid * inside_fraction(ci, ri, window, W, H) * window * window
     flat = ncc.reshape(n, -1)
     best = flat.argmax(1)
     by, bx = np.unravel_index(best, (side, side))
