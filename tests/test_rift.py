@@ -786,22 +786,23 @@ def test_pucallpa_refused_guess_leaves_the_other_guesses_to_run(shared_data):
     assert bd.judge(q, sc, res)["error_px"] <= 5.0
 
 
-def test_pooled_bands_are_searched_together():
-    """A query of two bands (the pooled bands): each rotation's features are both bands'
-    together, on one canvas. With a first band that shows another scene, the first band alone is
-    rejected and the pair finds the true pose: the second band's evidence is not lost."""
+def test_pooled_bands_are_searched_each_alone_every_bands_tests_counted():
+    """A query of two bands (the pooled bands): each band is searched alone and each one's
+    acceptance counts both bands' tests. With a first band that shows another scene, the pose is
+    the second band's own search with the first's rotations counted before it: the same pose
+    and log10 NFA, not a canvas where the first band's chance matches crowd its cells."""
     m = _scene(1)
     q, truth = _query(m, (170.0, 150.0), 37.0, 160)
     other, _ = _query(_scene(2), (170.0, 150.0), 37.0, 160)
-    c = rift.rift_conf({})
-    one = next(rift.rotated_features(other, 1.0, c))
-    both = next(rift.rotated_features(np.stack([other, q]), 1.0, c))
-    alone = next(rift.rotated_features(q, 1.0, c))
-    assert len(both[1]) == len(one[1]) + len(alone[1])
-    np.testing.assert_allclose(both[3], one[3])
+    n_rot = rift.DEFAULTS["rotations"]
     assert not rift.register(other, m, 1.0, _acc(), {})["accepted"]
     r = rift.register(np.stack([other, q]), m, 1.0, _acc(), {})
     assert r["accepted"], r["decision"]
+    assert r["tests"] == 2 * n_rot and r["band"] == 1
+    assert [b["accepted"] for b in r["per_band"]] == [False, True]
+    alone = rift.register(q, m, 1.0, _acc(), {}, tests_before=n_rot)
+    assert r["log10_nfa"] == pytest.approx(alone["log10_nfa"])
+    np.testing.assert_allclose(r["H"], alone["H"])
     pts = np.array([[0, 0], [159, 0], [0, 159], [159, 159], [80, 80]], float)
     err = np.linalg.norm(matching.apply_h(r["H"], pts) - matching.apply_h(truth, pts), axis=1)
     assert err.max() < 2.0, err
