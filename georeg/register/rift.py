@@ -852,8 +852,7 @@ def register(
                                 f"{c['confirm_log_p_max']:g}; refit on half the cells: "
                                 f"{conf_['split']['log10_p']:.1f})"}  # fmt: skip
     if best["accepted"] and c["reangle"]:
-        primary = query_u8 if query_u8.ndim == 2 else query_u8[0]
-        best["H"], best["reangle"] = reangle(best["H"], primary, scale, mxy, mm, kc, c, best.get("scale_free", False))
+        best["H"], best["reangle"] = reangle(best["H"], query_u8, scale, mxy, mm, kc, c, best.get("scale_free", False))
     if guided:
         best["rescue"] = r = rescue(guided, n_tests, c)
         if not best["accepted"] and r["log10_nfa"] < float(c["rescue_log_nfa_max"]):
