@@ -756,14 +756,13 @@ def register(
     # on 4.9 % of the query): accepted below log_nfa_max - null_margin
     strong = float(acc["log_nfa_max"]) - float(c["null_margin"])
     area = float((map_u8 > 0).sum()) if area is None else float(area)
-    n_rot = int(c["rotations"])
     models = fits(max_scale)
     n_vote = n_votes(area, c) if n_vote is None else int(n_vote)
-    n_tests = n_rot * len(models) * (1 + n_vote) + int(tests_before)
+    n_tests = one_band_tests(c, max_scale, n_vote) + int(tests_before)
     h, w = query_u8.shape[-2:]
     to_m = np.diag([map_gsd_m, -map_gsd_m, 1.0])  # map px -> north-up map units (handedness)
     best: dict[str, Any] = {"accepted": False, "H": None, "log10_nfa": math.inf, "inliers": 0,
-                            "matches": 0, "tests": n_rot * len(models) * (1 + n_vote), "angle_deg": None,
+                            "matches": 0, "tests": one_band_tests(c, max_scale, n_vote), "angle_deg": None,
                             "decision": None}  # fmt: skip
     per_rot: list[tuple[float, float]] = []  # (angle, log10 NFA) of each rotation's pose
     seen: tuple[np.ndarray, ...] = ()  # the best rotation's query keypoints, descriptors, A
@@ -865,6 +864,11 @@ def register(
     return best
 
 
+def one_band_tests(c: dict[str, Any], max_scale: float, n_vote: int) -> int:
+    """The tests of one band's search: every rotation, fit (``fits``) and vote region."""
+    return int(c["rotations"]) * len(fits(max_scale)) * (1 + int(n_vote))
+
+
 def _each_band(query_u8: np.ndarray, map_u8: np.ndarray | None, scale: float, acc_conf: dict[str, Any],
                c: dict[str, Any], map_feats: tuple[np.ndarray, np.ndarray], gsd_m: float | None,
                map_gsd_m: float, tests_before: int, area: float | None, max_scale: float,
@@ -876,7 +880,7 @@ def _each_band(query_u8: np.ndarray, map_u8: np.ndarray | None, scale: float, ac
     -4.6; B11 + B12 on one canvas 5 inliers at +3.9)."""
     area = float((map_u8 > 0).sum()) if area is None else float(area)
     nv = n_votes(area, c) if n_vote is None else int(n_vote)
-    own = int(c["rotations"]) * len(fits(max_scale)) * (1 + nv)  # one band's tests
+    own = one_band_tests(c, max_scale, nv)
     others = (len(query_u8) - 1) * own
     runs = [register(b, map_u8, scale, acc_conf, c, map_feats, gsd_m, map_gsd_m, tests_before + others,
                      area, max_scale, nv, centroids_path) for b in query_u8]  # fmt: skip
