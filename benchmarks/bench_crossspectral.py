@@ -292,6 +292,8 @@ METHODS: dict[str, dict[str, Any]] = {
     # and `bands: auto` (+ the band nearest 2200 nm) -- the workflow default; and `bands: one`
     "wf_default": {"pipeline": {}, "bands": "auto"},
     "wf_rift": {"pipeline": {"rift": {"enabled": True}}, "bands": "auto"},  # + the opt-in rift source
+    # the learned source forced on (an error without the extra, where the default skips it)
+    "wf_learned": {"pipeline": {"learned": {"enabled": True}}, "bands": "auto"},
     # rift's map shrunk to the query's GSD when the query is > 1.5x coarser (register.rift.
     # max_upsample before session 53; since then 2.5: session 53's runs of it were named wf_up2)
     "wf_upsample15": {"pipeline": {"rift": {"max_upsample": 1.5}}, "bands": "auto"},

