@@ -25,7 +25,7 @@ from georeg.io.raster import open_raster
 from georeg.io.video import frame_images, jpeg_cut_short
 from georeg.map import pdal_points
 from georeg.register.band import parse_band_spec, resolve_band
-from georeg.register.rift import learned_import_error
+from georeg.register.rift import learned_import_error, learned_missing
 
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".webm"}
 
@@ -165,8 +165,7 @@ class _Checker:
     def learned(self, learned: Mapping[str, Any]) -> None:
         """``register.learned.enabled: true`` needs ALIKED (``.ci/install-learned``)."""
         if learned.get("enabled") is True and (why := learned_import_error()):
-            self.add(f"register.learned.enabled: true, but ALIKED is not usable ({why}): "
-                     "bash .ci/install-learned (requirements-learned.txt), or set auto or false")
+            self.add(learned_missing(why))
 
     def frames(self, frames: Mapping[str, Any]) -> None:
         from PIL import Image, UnidentifiedImageError

