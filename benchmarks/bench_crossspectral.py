@@ -590,6 +590,7 @@ def run_pipeline(q: Query, sc_map: Scene, spec: dict[str, Any], seed: int, read_
     oc = res.get("ortho_check") or {}
     extra["ortho"] = oc.get("outcome")
     extra["ortho_gain"] = oc.get("gain")  # the tie points at H vs moved hypotheses (fits <= max_inliers)
+    extra["context_refit"] = res.get("context_refit")  # the learned extra's LightGlue re-fit
     if spec.get("refine") is not None and res["status"] == "registered":
         extra.update(run_refine(q, sc_map, np.array(res["homography"]), spec))
     return {
@@ -983,7 +984,8 @@ def main(argv: list[str] | None = None) -> int:
                    "global_fit_reason": res.get("global_fit_reason"),
                    "ortho": res.get("ortho"), "ortho_gain": res.get("ortho_gain"), "rift": res.get("rift"),
                    "null_check": res.get("null_check"), "pose_source": res.get("pose_source"),
-                   "learned": res.get("learned"), "cfog_peaks": res.get("cfog_peaks")}  # fmt: skip
+                   "learned": res.get("learned"), "cfog_peaks": res.get("cfog_peaks"),
+                   "context_refit": res.get("context_refit")}  # fmt: skip
             rows[name].append(rec)
             if a.v:
                 e = ("-" if j["error_px"] is None

@@ -795,6 +795,7 @@ def main(argv: list[str] | None = None) -> int:
                    "places": len(getattr(q, "alts", []) or []),
                    "truth_audit": getattr(q, "truth_audit", None),
                    **_rift_fields(res), "ortho_gain": res.get("ortho_gain"),
+                   "context_refit": res.get("context_refit"),
                    "second_pass": res.get("second_pass"),
                    "cfog_peaks": _peaks_fields(res.get("cfog_peaks")),
                    "sources": res.get("sources"), "pose_source": res.get("pose_source"),

@@ -498,13 +498,10 @@ def check_fused(
     t1 = time.perf_counter()
     fused, orec = ortho_check.apply(q.u8, fused, view.read_window, conf)
     fused = turn_weak_fit(q.u8, fused, view, conf, orec)
-    crec = None
-    if (fused.get("homography") is not None and view.read_window is not None
-            and abs(view.aspect - 1.0) <= 1e-6 and rift.learned_on(conf)):  # fmt: skip
-        H2, crec = rift.context_refit(q.u8, np.asarray(fused["homography"], float), view.read_window)
-        if crec is not None and crec["taken"]:
-            fused = {**fused, "homography": (H2 / H2[2, 2]).tolist()}
-        log.info("context re-fit: %s", crec)
+    t1 = time.perf_counter()
+    fused, crec = context_refit(q.u8, fused, view, conf)
+    if crec is not None:
+        timings["context_refit"] = time.perf_counter() - t1
     if orec is not None and orec.get("seconds") is not None:
         timings["ortho_check"] = time.perf_counter() - t1
     H = None if fused.get("homography") is None else np.array(fused["homography"])
@@ -539,6 +536,21 @@ def turn_weak_fit(u8: np.ndarray, fused: dict[str, Any], view: MapView, conf: di
     if orec["turn"] is None or orec["turn"].get("score") is None:
         return fused
     return {**fused, "homography": (H2 / H2[2, 2]).tolist()}
+
+
+def context_refit(u8: np.ndarray, fused: dict[str, Any], view: MapView, conf: dict[str, Any]
+                  ) -> tuple[dict[str, Any], dict[str, Any] | None]:  # fmt: skip
+    """With the learned extra (``register.learned``), the registered pose re-fit by LightGlue's
+    context matching against the orthophoto (``rift.context_refit``: the ground where our
+    keypoints took the roofs). Returns the result and the record (None: not run)."""
+    if (fused.get("homography") is None or view.read_window is None
+            or abs(view.aspect - 1.0) > 1e-6 or not rift.learned_on(conf)):  # fmt: skip
+        return fused, None
+    H2, crec = rift.context_refit(u8, np.asarray(fused["homography"], float), view.read_window)
+    log.info("context re-fit: %s", crec)
+    if crec is not None and crec["taken"]:
+        fused = {**fused, "homography": (H2 / H2[2, 2]).tolist()}
+    return fused, crec
 
 
 def centre_similarity(H: np.ndarray, w: int, h: int) -> np.ndarray:
@@ -709,7 +721,7 @@ def run_fuse_parts(
     }
     if fused["status"] != "registered":
         reg["reason"] = fused.get("reason")
-    for term in ("null_check", "ortho_check", "lidar_check"):
+    for term in ("null_check", "ortho_check", "context_refit", "lidar_check"):
         if rec[term] is not None:
             reg[term] = rec[term]
     if truth:
