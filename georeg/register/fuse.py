@@ -498,12 +498,12 @@ def check_fused(
     t1 = time.perf_counter()
     fused, orec = ortho_check.apply(q.u8, fused, view.read_window, conf)
     fused = turn_weak_fit(q.u8, fused, view, conf, orec)
+    if orec is not None and orec.get("seconds") is not None:
+        timings["ortho_check"] = time.perf_counter() - t1
     t1 = time.perf_counter()
     fused, crec = context_refit(q.u8, fused, view, conf)
     if crec is not None:
         timings["context_refit"] = time.perf_counter() - t1
-    if orec is not None and orec.get("seconds") is not None:
-        timings["ortho_check"] = time.perf_counter() - t1
     H = None if fused.get("homography") is None else np.array(fused["homography"])
     t1 = time.perf_counter()
     lidar = lidar_check.run_check(q.primary, H, dsm, conf)

